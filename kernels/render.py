@@ -1,0 +1,88 @@
+"""Kernel #1: ray-cast candidates' boxes through one `wp.Mesh` (model frame, metres).
+
+Candidates are packed flat: candidate c owns pixels [pix_off[c], pix_off[c+1]) that
+cover its image box (x0, y0, w, h) row by row, so boxes of different sizes waste
+no threads. Rays are expressed in the model frame (one BVH for all poses).
+"""
+
+import warp as wp
+
+
+@wp.func
+def find_candidate(offsets: wp.array(dtype=wp.int32), n: int, i: int) -> int:
+    """Index c with offsets[c] <= i < offsets[c+1] (binary search over n candidates)."""
+    lo = 0
+    hi = n
+    while hi - lo > 1:
+        mid = (lo + hi) // 2
+        if offsets[mid] <= i:
+            lo = mid
+        else:
+            hi = mid
+    return lo
+
+
+@wp.func
+def sample_texture(tex: wp.array2d(dtype=wp.vec3), uv: wp.vec2) -> wp.vec3:
+    """Bilinear lookup, texture row 0 at v = 0, UVs wrapped (OBJ convention)."""
+    h = tex.shape[0]
+    w = tex.shape[1]
+    x = (uv[0] - wp.floor(uv[0])) * float(w) - 0.5
+    y = (uv[1] - wp.floor(uv[1])) * float(h) - 0.5
+    x0f = wp.floor(x)
+    y0f = wp.floor(y)
+    fx = x - x0f
+    fy = y - y0f
+    x0 = (int(x0f) + w) % w
+    y0 = (int(y0f) + h) % h
+    x1 = (x0 + 1) % w
+    y1 = (y0 + 1) % h
+    top = tex[y0, x0] * (1.0 - fx) + tex[y0, x1] * fx
+    bot = tex[y1, x0] * (1.0 - fx) + tex[y1, x1] * fx
+    return top * (1.0 - fy) + bot * fy
+
+
+@wp.kernel(enable_backward=False)
+def render_boxes(
+    mesh: wp.uint64,
+    indices: wp.array(dtype=wp.int32),
+    uvs: wp.array(dtype=wp.vec2),
+    texture: wp.array2d(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    use_texture: int,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    rot_c2m: wp.array(dtype=wp.mat33),
+    origin_m: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4i),
+    pix_off: wp.array(dtype=wp.int32),
+    n_cand: int,
+    out_rgb: wp.array(dtype=wp.vec3),
+    out_mask: wp.array(dtype=wp.uint8),
+):
+    i = wp.tid()
+    c = find_candidate(pix_off, n_cand, i)
+    b = box[c]  # x0, y0, w, h in image pixels
+    local = i - pix_off[c]
+    u = b[0] + local % b[2]
+    v = b[1] + local // b[2]
+    d_c = wp.vec3((float(u) - cx) / fx, (float(v) - cy) / fy, 1.0)
+    d_m = rot_c2m[c] * d_c
+    q = wp.mesh_query_ray(mesh, origin_m[c], d_m, 1.0e6)
+    if q.result:
+        i0 = indices[q.face * 3 + 0]
+        i1 = indices[q.face * 3 + 1]
+        i2 = indices[q.face * 3 + 2]
+        # Warp's barycentrics weight the face's corners as (u, v, 1 - u - v).
+        w2 = 1.0 - q.u - q.v
+        if use_texture != 0:
+            uv = uvs[i0] * q.u + uvs[i1] * q.v + uvs[i2] * w2
+            out_rgb[i] = sample_texture(texture, uv)
+        else:
+            out_rgb[i] = colors[i0] * q.u + colors[i1] * q.v + colors[i2] * w2
+        out_mask[i] = wp.uint8(1)
+    else:
+        out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)
+        out_mask[i] = wp.uint8(0)

@@ -1,0 +1,306 @@
+"""Command line: `python -m perch_warp IMAGE --mesh MESH --camera CAMERA.json ...` and subcommands.
+
+Subcommands: `demo` (a self-made scene, offline), `eval` (BOP datasets), `synth`
+(synthetic BOP scenes). Bad input ends with one line on stderr and exit code 1.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import json
+import math
+import os
+import re
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from .errors import PerchError
+
+# name -> module exposing add_arguments(parser) and run(args) -> int
+SUBCOMMANDS = {
+    "demo": ("perch_warp.demo", "run the whole pipeline on a scene the project makes itself (offline)"),
+    "eval": ("perch_warp.evaluate", "evaluate on a BOP-format dataset (ADD-S, AUC, plots)"),
+    "synth": ("perch_warp.synth", "generate photorealistic synthetic BOP test scenes"),
+}
+
+
+def log(msg: str) -> None:
+    print(msg, file=sys.stderr, flush=True)
+
+
+# --- options shared by the estimate, demo and eval commands -------------------------------------
+
+
+def add_method_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("method (thesis §3.2)")
+    g.add_argument(
+        "--weights", default="auto", help="conv1 weights: auto | caffe | torchvision | FILE.npz (default: auto)"
+    )
+    g.add_argument("--stride", type=int, default=4, help="feature-grid stride in pixels (default: 4)")
+    g.add_argument(
+        "--alpha", type=float, default=0.5, help="occlusion limit α in (0, 1]: mean of the top α of pixel scores"
+    )
+    g.add_argument("--clusters", type=int, default=20, help="k-means clusters for rarity (default: 20)")
+    g.add_argument("--seed", type=int, default=0, help="k-means seed (default: 0)")
+    g.add_argument("--top-k", type=int, default=5, help="how many best poses to report (default: 5)")
+    g.add_argument("--relu", action="store_true", help="apply AlexNet's ReLU after conv1 (default: raw conv1)")
+    g.add_argument("--device", default=None, help="Warp device: cpu | cuda:0 (default: a GPU if Warp sees one)")
+    g.add_argument(
+        "--batch-pixels", type=int, default=None, help="rendered pixels per batch (default: sized to the device)"
+    )
+
+
+def add_search_arguments(p: argparse.ArgumentParser) -> None:
+    g = p.add_argument_group("search space (table frame)")
+    g.add_argument(
+        "--x-range", type=float, nargs=2, metavar=("LO", "HI"), help="x range in metres (default: visible table)"
+    )
+    g.add_argument(
+        "--y-range", type=float, nargs=2, metavar=("LO", "HI"), help="y range in metres (default: visible table)"
+    )
+    g.add_argument("--xy-step", type=float, default=0.01, help="x/y step in metres (default: 0.01)")
+    g.add_argument(
+        "--yaw-range", type=float, nargs=2, default=(0.0, 360.0), metavar=("LO", "HI"), help="degrees (default: 0 360)"
+    )
+    g.add_argument("--yaw-step", type=float, default=5.0, help="yaw step in degrees (default: 5)")
+    g.add_argument(
+        "--clip", type=float, default=1.0, help="default region: visible table clipped to a square this wide (m)"
+    )
+
+
+def engine_config_from_args(args: argparse.Namespace):
+    from .engine import EngineConfig
+
+    return EngineConfig(
+        stride=args.stride,
+        alpha=args.alpha,
+        clusters=args.clusters,
+        seed=args.seed,
+        top_k=args.top_k,
+        relu=args.relu,
+        batch_pixels=args.batch_pixels,
+    )
+
+
+def search_space_from_args(args: argparse.Namespace, camera, table):
+    from .search_space import SearchSpace
+
+    yaw_lo, yaw_hi = (math.radians(a) for a in args.yaw_range)
+    if args.x_range is None and args.y_range is None:
+        space = SearchSpace.visible_table(camera, table, args.xy_step, math.radians(args.yaw_step), clip_m=args.clip)
+        return SearchSpace(
+            space.x_range_m, space.y_range_m, args.xy_step, (yaw_lo, yaw_hi), math.radians(args.yaw_step)
+        )
+    if args.x_range is None or args.y_range is None:
+        raise PerchError("give both --x-range and --y-range, or neither (then the visible table is searched)")
+    space = SearchSpace(
+        tuple(args.x_range), tuple(args.y_range), args.xy_step, (yaw_lo, yaw_hi), math.radians(args.yaw_step)
+    )
+    len(space)  # validates the ranges and steps
+    return space
+
+
+def build_engine(args: argparse.Namespace, mesh, quiet: bool = False):
+    """Weights, device and engine from the method options, saying what was chosen."""
+    from .engine import Engine, default_device
+    from .features import load_feature_weights
+
+    config = engine_config_from_args(args)
+    weights = load_feature_weights(args.weights)
+    device = args.device or default_device()
+    if not quiet:
+        log(f"features: {weights.source}")
+        log(f"device: {device}" + ("" if args.device else " (chosen automatically; --device to override)"))
+    return Engine(mesh, weights, device, config)
+
+
+def write_json_atomic(path: str | Path, data: dict) -> None:
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(json.dumps(data, indent=1))
+    os.replace(tmp, path)
+
+
+# --- the main job: estimate one image -----------------------------------------------------------
+
+
+def add_estimate_arguments(p: argparse.ArgumentParser) -> None:
+    p.add_argument("image", help="RGB photo (PNG/JPEG)")
+    p.add_argument("--mesh", required=True, help="object mesh: textured OBJ, PLY with vertex colours, PLY/GLB with UVs")
+    p.add_argument(
+        "--mesh-units", default="auto", choices=["auto", "mm", "m"], help="mesh length unit (default: auto by size)"
+    )
+    p.add_argument(
+        "--camera", required=True, help="camera JSON: BOP scene_camera.json style (cam_K, cam_R_w2c, cam_t_w2c in mm)"
+    )
+    p.add_argument(
+        "--image-id",
+        type=int,
+        default=None,
+        help="entry of a multi-image scene_camera.json (default: from the image name)",
+    )
+    p.add_argument(
+        "--lift-mm", type=float, default=0.0, help="the surface the object stands on is this high above the table (mm)"
+    )
+    p.add_argument(
+        "--truth",
+        default=None,
+        help="BOP scene_gt.json: take height, roll and pitch from the ground truth of --obj-id (thesis protocol) "
+        "and report the estimate's error",
+    )
+    p.add_argument("--obj-id", type=int, default=None, help="object id in --truth")
+    add_search_arguments(p)
+    add_method_arguments(p)
+    g = p.add_argument_group("output")
+    g.add_argument("--out", default=None, help="write the result as JSON here")
+    g.add_argument("--overlay", default=None, help="write a PNG of the best pose over the photo here")
+    g.add_argument("--quiet", action="store_true", help="no progress bar or notes on stderr")
+
+
+def _image_id(args: argparse.Namespace) -> int | None:
+    if args.image_id is not None:
+        return args.image_id
+    m = re.fullmatch(r"0*(\d+)", Path(args.image).stem)
+    return int(m.group(1)) if m else None
+
+
+def _truth_instance(path: str, image_id: int | None, obj_id: int | None) -> dict:
+    try:
+        data = json.loads(Path(path).read_text())
+    except (OSError, ValueError) as e:
+        raise PerchError(f"cannot read ground truth {path}: {e}") from None
+    if obj_id is None:
+        raise PerchError("--truth needs --obj-id")
+    entries = (
+        data.get(str(image_id)) if image_id is not None else (next(iter(data.values())) if len(data) == 1 else None)
+    )
+    if entries is None:
+        raise PerchError(f"ground truth {path} has no entry for image id {image_id}")
+    inst = [g for g in entries if int(g.get("obj_id", -1)) == obj_id]
+    if not inst:
+        raise PerchError(f"ground truth {path} has no object {obj_id} in image {image_id}")
+    return inst[0]
+
+
+def run_estimate(args: argparse.Namespace) -> int:
+    from .camera import camera_from_entry, read_camera_json
+    from .image import load_rgb, save_png
+    from .mesh import load_mesh
+    from .table import RestingPose, Table, decompose_on_table
+
+    image = load_rgb(args.image)
+    image_id = _image_id(args)
+    try:
+        entry = read_camera_json(args.camera, image_id)
+    except PerchError:
+        if args.image_id is None and image_id is not None:
+            entry = read_camera_json(args.camera, None)
+        else:
+            raise
+    camera = camera_from_entry(entry, image.shape[1], image.shape[0], source=args.camera)
+    table = Table.from_entry(entry, source=args.camera)
+    mesh = load_mesh(args.mesh, args.mesh_units)
+    truth = None
+    if args.truth:
+        g = _truth_instance(args.truth, image_id, args.obj_id)
+        R_gt = np.asarray(g["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
+        t_gt = np.asarray(g["cam_t_m2c"], dtype=np.float64) / 1000.0
+        resting, gx, gy, gyaw = decompose_on_table(table, R_gt, t_gt)
+        truth = (R_gt, t_gt, gx, gy, gyaw)
+    else:
+        resting = RestingPose.upright(mesh.vertices_m, lift_m=args.lift_mm / 1000.0)
+    space = search_space_from_args(args, camera, table)
+    if not args.quiet:
+        log(f"mesh: {mesh.source}, units {mesh.units_note}, {len(mesh.faces)} faces")
+        log(f"search: {space.describe()}")
+    engine = build_engine(args, mesh, args.quiet)
+    result = engine.estimate(image, camera, table, resting, space, progress=not args.quiet)
+    out = {
+        "image": str(args.image),
+        "mesh": str(args.mesh),
+        "resting": {"R_rest": resting.R_rest.reshape(-1).tolist(), "z_m": resting.z_m},
+    }
+    out.update(result.to_dict())
+    b = result.best
+    print(
+        f"pose: x = {b.x_m:+.4f} m, y = {b.y_m:+.4f} m, yaw = {math.degrees(b.yaw_rad):.1f} deg (table frame), "
+        f"score {b.score:.4f}"
+    )
+    print("time: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items()))
+    if truth is not None:
+        from .pose_error import add, adi
+
+        R_gt, t_gt, gx, gy, gyaw = truth
+        pts = mesh.vertices_m
+        err = {
+            "x_m": gx,
+            "y_m": gy,
+            "yaw_deg": math.degrees(gyaw),
+            "adds_m": adi(b.T_m2c[:3, :3], b.T_m2c[:3, 3], R_gt, t_gt, pts),
+            "add_m": add(b.T_m2c[:3, :3], b.T_m2c[:3, 3], R_gt, t_gt, pts),
+            "xy_error_m": math.hypot(b.x_m - gx, b.y_m - gy),
+            "yaw_error_deg": abs(math.degrees((b.yaw_rad - gyaw + math.pi) % (2 * math.pi) - math.pi)),
+        }
+        out["truth"] = err
+        print(
+            f"truth: x = {gx:+.4f} m, y = {gy:+.4f} m, yaw = {math.degrees(gyaw):.1f} deg; "
+            f"ADD-S {err['adds_m'] * 100:.2f} cm, ADD {err['add_m'] * 100:.2f} cm, "
+            f"xy error {err['xy_error_m'] * 100:.2f} cm, yaw error {err['yaw_error_deg']:.1f} deg"
+        )
+    if args.out:
+        write_json_atomic(args.out, out)
+    if args.overlay:
+        from .overlay import TRUTH_COLOR, caption, overlay_mask, overlay_rendering
+
+        rgb, mask = engine.render(camera, b.T_m2c)
+        pic = overlay_rendering(image, rgb, mask)
+        lines = [
+            f"estimate (magenta): x {b.x_m:+.3f} m  y {b.y_m:+.3f} m  "
+            f"yaw {math.degrees(b.yaw_rad):.0f} deg  score {b.score:.3f}"
+        ]
+        if truth is not None:
+            from .table import pose_matrix
+
+            _, gmask = engine.render(camera, pose_matrix(truth[0], truth[1]))
+            pic = overlay_mask(pic, gmask & ~mask, TRUTH_COLOR, tint=0.0)
+            from .overlay import mask_contour
+
+            pic[mask_contour(gmask)] = TRUTH_COLOR
+            lines.append(f"ground truth (green): ADD-S {out['truth']['adds_m'] * 100:.2f} cm")
+        save_png(args.overlay, caption(pic, lines))
+    return 0
+
+
+# --- entry point --------------------------------------------------------------------------------
+
+
+def _parser(prog: str = "python -m perch_warp") -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog=prog,
+        description="Find where a known object sits on a table from one RGB image (PERCH Color Only on NVIDIA Warp). "
+        f"Subcommands: {', '.join(SUBCOMMANDS)} (see `{prog} SUBCOMMAND --help`).",
+    )
+    add_estimate_arguments(p)
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    try:
+        if argv and argv[0] in SUBCOMMANDS:
+            module_name, help_text = SUBCOMMANDS[argv[0]]
+            p = argparse.ArgumentParser(prog=f"python -m perch_warp {argv[0]}", description=help_text)
+            module = importlib.import_module(module_name)
+            module.add_arguments(p)
+            return int(module.run(p.parse_args(argv[1:])) or 0)
+        return run_estimate(_parser().parse_args(argv))
+    except PerchError as e:
+        log(f"perch_warp: error: {e}")
+        return 1
+    except KeyboardInterrupt:
+        log("perch_warp: interrupted")
+        return 130

@@ -1,0 +1,130 @@
+"""Rendering candidates: project their boxes, pack them, and ray-cast with kernel #1.
+
+No lighting, as in the thesis: a pixel's colour is the texture (or vertex colour)
+at the first surface its ray meets.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import warp as wp
+
+from .camera import Camera
+from .kernels.render import render_boxes
+from .mesh import ObjectMesh
+
+# Candidates closer than this to the camera plane cannot be rendered sensibly.
+MIN_DEPTH_M = 0.02
+
+
+def project_boxes(camera: Camera, hull_m: np.ndarray, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> np.ndarray:
+    """Pixel boxes (N, 4) = (x0, y0, w, h) covering each candidate's projection, clipped to the image.
+
+    `hull_m` are model-frame points (m) whose projection bounds the mesh's (its convex
+    hull). w = h = 0 where the candidate is outside the image; -1 where it is behind
+    or too close to the camera.
+    """
+    out = np.zeros((len(R_m2c), 4), dtype=np.int32)
+    chunk = max(1, 2_000_000 // max(1, len(hull_m)))
+    for s in range(0, len(R_m2c), chunk):
+        P = np.einsum("nij,kj->nki", R_m2c[s : s + chunk], hull_m) + t_m2c_m[s : s + chunk, None, :]
+        z = P[..., 2]
+        behind = z.min(1) < MIN_DEPTH_M
+        z = np.where(z < MIN_DEPTH_M, MIN_DEPTH_M, z)
+        u = camera.fx * P[..., 0] / z + camera.cx
+        v = camera.fy * P[..., 1] / z + camera.cy
+        x0 = np.maximum(np.floor(u.min(1)), 0)
+        x1 = np.minimum(np.ceil(u.max(1)), camera.width - 1)
+        y0 = np.maximum(np.floor(v.min(1)), 0)
+        y1 = np.minimum(np.ceil(v.max(1)), camera.height - 1)
+        w = np.where(x1 >= x0, x1 - x0 + 1, 0)
+        h = np.where(y1 >= y0, y1 - y0 + 1, 0)
+        empty = (w == 0) | (h == 0)
+        box = np.stack([x0, y0, w, h], -1)
+        box[empty] = 0
+        box[behind] = -1
+        out[s : s + chunk] = box
+    return out
+
+
+@dataclass
+class RenderedBatch:
+    """Kernel #1's output for a batch, still on the device."""
+
+    rgb: wp.array  # (P,) vec3, RGB in [0, 1]
+    mask: wp.array  # (P,) uint8
+    box: wp.array  # (B,) vec4i image boxes
+    pix_off: wp.array  # (B + 1,) int32 flat offsets
+    n: int
+
+
+class MeshRenderer:
+    """A mesh and its appearance uploaded once to a Warp device (model frame, metres)."""
+
+    def __init__(self, mesh: ObjectMesh, device: str):
+        self.device = device
+        self.mesh = mesh
+        with wp.ScopedDevice(device):
+            self.points = wp.array(mesh.vertices_m.astype(np.float32), dtype=wp.vec3)
+            self.indices = wp.array(mesh.faces.reshape(-1).astype(np.int32), dtype=wp.int32)
+            self.wp_mesh = wp.Mesh(points=self.points, indices=self.indices)
+            if mesh.texture is not None:
+                self.use_texture = 1
+                self.uvs = wp.array(mesh.uv.astype(np.float32), dtype=wp.vec2)
+                self.texture = wp.array(mesh.texture.astype(np.float32), dtype=wp.vec3)
+                self.colors = wp.zeros(1, dtype=wp.vec3)
+            else:
+                self.use_texture = 0
+                self.uvs = wp.zeros(1, dtype=wp.vec2)
+                self.texture = wp.zeros((1, 1), dtype=wp.vec3)
+                self.colors = wp.array(mesh.vertex_colors.astype(np.float32), dtype=wp.vec3)
+
+    def render(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, boxes: np.ndarray) -> RenderedBatch:
+        """Ray-cast each candidate's box (boxes (B, 4) with w, h > 0); returns device arrays."""
+        boxes = np.asarray(boxes, dtype=np.int32)
+        sizes = boxes[:, 2].astype(np.int64) * boxes[:, 3]
+        pix_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
+        n_pix = int(pix_off[-1])
+        R_c2m = np.ascontiguousarray(np.transpose(R_m2c, (0, 2, 1)), dtype=np.float32)
+        origin_m = -np.einsum("nij,nj->ni", R_c2m.astype(np.float64), t_m2c_m).astype(np.float32)
+        with wp.ScopedDevice(self.device):
+            batch = RenderedBatch(
+                rgb=wp.empty(n_pix, dtype=wp.vec3),
+                mask=wp.empty(n_pix, dtype=wp.uint8),
+                box=wp.array(boxes, dtype=wp.vec4i),
+                pix_off=wp.array(pix_off, dtype=wp.int32),
+                n=len(boxes),
+            )
+            wp.launch(
+                render_boxes,
+                dim=n_pix,
+                inputs=[
+                    self.wp_mesh.id,
+                    self.indices,
+                    self.uvs,
+                    self.texture,
+                    self.colors,
+                    self.use_texture,
+                    camera.fx,
+                    camera.fy,
+                    camera.cx,
+                    camera.cy,
+                    wp.array(R_c2m, dtype=wp.mat33),
+                    wp.array(origin_m, dtype=wp.vec3),
+                    batch.box,
+                    batch.pix_off,
+                    batch.n,
+                ],
+                outputs=[batch.rgb, batch.mask],
+            )
+        return batch
+
+    def render_image(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The whole image for one pose: RGB float32 (H, W, 3) in [0, 1] and mask bool (H, W)."""
+        box = np.array([[0, 0, camera.width, camera.height]], dtype=np.int32)
+        b = self.render(camera, np.asarray(R_m2c)[None], np.asarray(t_m2c_m)[None], box)
+        rgb = b.rgb.numpy().reshape(camera.height, camera.width, 3)
+        mask = b.mask.numpy().reshape(camera.height, camera.width).astype(bool)
+        return rgb, mask

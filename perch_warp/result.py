@@ -1,0 +1,76 @@
+"""What a search returns, and its JSON form (metres and radians inside, BOP's mm beside)."""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+
+@dataclass
+class Candidate:
+    x_m: float
+    y_m: float
+    yaw_rad: float
+    score: float
+    T_m2c: np.ndarray  # 4x4, model -> camera, metres
+
+    def to_dict(self) -> dict:
+        return {
+            "x_m": self.x_m,
+            "y_m": self.y_m,
+            "yaw_deg": math.degrees(self.yaw_rad),
+            "yaw_rad": self.yaw_rad,
+            "score": self.score,
+            "cam_R_m2c": self.T_m2c[:3, :3].reshape(-1).tolist(),
+            "cam_t_m2c_mm": (self.T_m2c[:3, 3] * 1000.0).tolist(),
+        }
+
+
+@dataclass
+class Result:
+    """The best pose on the table, the runners-up, and what it took."""
+
+    best: Candidate
+    top_k: list[Candidate]
+    n_candidates: int
+    n_scored: int
+    timings_s: dict[str, float]
+    device: str
+    info: dict = field(default_factory=dict)
+
+    @property
+    def x_m(self) -> float:
+        return self.best.x_m
+
+    @property
+    def y_m(self) -> float:
+        return self.best.y_m
+
+    @property
+    def yaw_rad(self) -> float:
+        return self.best.yaw_rad
+
+    @property
+    def score(self) -> float:
+        return self.best.score
+
+    @property
+    def T_m2c(self) -> np.ndarray:
+        return self.best.T_m2c
+
+    @property
+    def timings(self) -> dict[str, float]:
+        return self.timings_s
+
+    def to_dict(self) -> dict:
+        return {
+            "pose": self.best.to_dict(),
+            "top_k": [c.to_dict() for c in self.top_k],
+            "n_candidates": self.n_candidates,
+            "n_scored": self.n_scored,
+            "timings_s": self.timings_s,
+            "device": self.device,
+            **self.info,
+        }
