@@ -111,7 +111,7 @@ def feature_kernels(C: int):
         u = half + stride * gx
         v = half + stride * gy
         rb = box[c]
-        on_mask = 0
+        on_mask = int(0)
         if u >= rb[0] and u < rb[0] + rb[2] and v >= rb[1] and v < rb[1] + rb[3]:
             if mask[pix_off[c] + (v - rb[1]) * rb[2] + (u - rb[0])] != wp.uint8(0):
                 on_mask = 1
@@ -120,7 +120,7 @@ def feature_kernels(C: int):
             return
         f = conv_at(image, rgb, mask, pix_off[c], rb, u, v, Wt, bias, ks, relu)
         denom = wp.length(f) * obs_norm[gy, gx]
-        cos = 0.0
+        cos = float(0.0)
         if denom > 1.0e-12:
             cos = wp.dot(f, obs_feat[gy, gx]) / denom
         out[i] = cos * rarity[gy, gx]

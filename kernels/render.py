@@ -11,8 +11,8 @@ import warp as wp
 @wp.func
 def find_candidate(offsets: wp.array(dtype=wp.int32), n: int, i: int) -> int:
     """Index c with offsets[c] <= i < offsets[c+1] (binary search over n candidates)."""
-    lo = 0
-    hi = n
+    lo = int(0)  # int(...) makes a mutable (dynamic) Warp variable
+    hi = int(n)
     while hi - lo > 1:
         mid = (lo + hi) // 2
         if offsets[mid] <= i:

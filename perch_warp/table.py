@@ -124,7 +124,9 @@ class RestingPose:
 
     def model_to_table(self, x_m, y_m, yaw_rad) -> tuple[np.ndarray, np.ndarray]:
         """Rotations (N, 3, 3) and translations (N, 3) in metres for candidate arrays x, y, yaw."""
-        x_m, y_m, yaw_rad = np.broadcast_arrays(*(np.asarray(a, dtype=np.float64) for a in (x_m, y_m, yaw_rad)))
+        x_m, y_m, yaw_rad = np.broadcast_arrays(
+            *(np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (x_m, y_m, yaw_rad))
+        )
         R = rot_z(yaw_rad) @ self.R_rest
         t = np.stack([x_m, y_m, np.full_like(x_m, self.z_m)], -1)
         return R, t

@@ -1,0 +1,74 @@
+"""A shaded, shadowed photo of a whole scene, for the demo and the tests.
+
+This is the "camera" the engine is checked against, so it deliberately differs from
+kernel #1: Lambertian + specular lighting from a point light, hard shadows, and the
+host adds colour cast, gamma, blur and sensor noise. Each scene mesh is cast in its
+own pass (camera frame, metres) and passes are composited by depth.
+"""
+
+import warp as wp
+
+from .render import sample_texture
+
+
+@wp.kernel(enable_backward=False)
+def primary_pass(
+    mesh: wp.uint64,
+    indices: wp.array(dtype=wp.int32),
+    uvs: wp.array(dtype=wp.vec2),
+    texture: wp.array2d(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    use_texture: int,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    depth: wp.array2d(dtype=float),
+    albedo: wp.array2d(dtype=wp.vec3),
+    normal: wp.array2d(dtype=wp.vec3),
+    label: wp.array2d(dtype=wp.int32),
+    mesh_label: int,
+):
+    v, u = wp.tid()
+    d = wp.normalize(wp.vec3((float(u) - cx) / fx, (float(v) - cy) / fy, 1.0))
+    q = wp.mesh_query_ray(mesh, wp.vec3(0.0, 0.0, 0.0), d, depth[v, u])
+    if q.result:
+        i0 = indices[q.face * 3 + 0]
+        i1 = indices[q.face * 3 + 1]
+        i2 = indices[q.face * 3 + 2]
+        w2 = 1.0 - q.u - q.v
+        if use_texture != 0:
+            albedo[v, u] = sample_texture(texture, uvs[i0] * q.u + uvs[i1] * q.v + uvs[i2] * w2)
+        else:
+            albedo[v, u] = colors[i0] * q.u + colors[i1] * q.v + colors[i2] * w2
+        n = wp.normalize(q.normal)
+        if wp.dot(n, d) > 0.0:
+            n = -n
+        normal[v, u] = n
+        depth[v, u] = q.t
+        label[v, u] = mesh_label
+
+
+@wp.kernel(enable_backward=False)
+def shadow_pass(
+    mesh: wp.uint64,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    light: wp.vec3,
+    depth: wp.array2d(dtype=float),
+    normal: wp.array2d(dtype=wp.vec3),
+    lit: wp.array2d(dtype=float),
+):
+    v, u = wp.tid()
+    t = depth[v, u]
+    if t >= 1.0e5:
+        return
+    d = wp.normalize(wp.vec3((float(u) - cx) / fx, (float(v) - cy) / fy, 1.0))
+    p = d * t + normal[v, u] * 1.0e-4
+    to_light = light - p
+    dist = wp.length(to_light)
+    q = wp.mesh_query_ray(mesh, p, to_light / dist, dist)
+    if q.result:
+        lit[v, u] = 0.0
