@@ -26,7 +26,7 @@ class Camera:
     def __post_init__(self) -> None:
         K = np.asarray(self.K, dtype=np.float64)
         if K.shape != (3, 3) or not np.all(np.isfinite(K)):
-            raise PerchError(f"camera intrinsics must be a finite 3x3 matrix, got {self.K!r}")
+            raise PerchError(f"camera intrinsics must be a finite 3x3 matrix, got {np.asarray(self.K).tolist()}")
         fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
         if fx <= 0 or fy <= 0:
             raise PerchError(f"camera focal lengths must be positive, got fx={fx}, fy={fy}")

@@ -299,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
             return int(module.run(p.parse_args(argv[1:])) or 0)
         return run_estimate(_parser().parse_args(argv))
     except PerchError as e:
-        log(f"perch_warp: error: {e}")
+        log("perch_warp: error: " + " ".join(str(e).split()))  # always one line
         return 1
     except KeyboardInterrupt:
         log("perch_warp: interrupted")

@@ -1,0 +1,472 @@
+"""Reading BOP-format datasets and writing BOP results (cf. bop_toolkit_lib's `inout`).
+
+BOP files carry **millimetres** (`cam_t_m2c`, `cam_t_w2c`, model vertices, depth
+after `depth_scale`); everything returned here is in **metres** except where a
+name ends in `_mm`. Poses are model -> camera (`R_m2c`, `t_m2c_m`).
+
+Layout read (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md):
+
+    DATASET/models/obj_{id:06d}.obj|.ply (+ models_info.json)
+    DATASET/{split}/{scene:06d}/rgb/{im:06d}.png|.jpg
+    DATASET/{split}/{scene:06d}/scene_camera.json, scene_gt.json [, scene_gt_info.json, depth/]
+    DATASET/camera.json [optional: width, height checked against every image]
+    DATASET/dataset_info.json [optional: {"models_dir": "..."}, written by our synthetic generator]
+
+Every malformed input raises `PerchError` naming the file.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from .camera import Camera, camera_from_entry
+from .errors import PerchError
+from .table import Table
+
+RESULTS_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
+MESH_SUFFIXES = (".obj", ".ply")
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".tif")
+
+
+# ----------------------------------------------------------------------------- JSON files
+
+
+def read_json(path: str | Path, what: str = "JSON file"):
+    """Parse a JSON file; missing or malformed files raise PerchError naming the file."""
+    path = Path(path)
+    try:
+        text = path.read_text()
+    except FileNotFoundError:
+        raise PerchError(f"{what} not found: {path}") from None
+    except OSError as e:
+        raise PerchError(f"cannot read {what} {path}: {e}") from None
+    try:
+        return json.loads(text)
+    except ValueError as e:
+        raise PerchError(f"malformed JSON in {path}: {e}") from None
+
+
+def _id_keyed(data, path: Path) -> dict[int, object]:
+    if not isinstance(data, dict):
+        raise PerchError(f"{path} must hold a JSON object keyed by integer ids")
+    out: dict[int, object] = {}
+    for k, v in data.items():
+        try:
+            out[int(k)] = v
+        except ValueError:
+            raise PerchError(f"{path}: key {k!r} is not an integer id") from None
+    return out
+
+
+def _floats(value, n: int, path: Path, where: str) -> np.ndarray:
+    try:
+        a = np.asarray(value, dtype=np.float64).reshape(-1)
+    except (TypeError, ValueError):
+        a = np.zeros(0)
+    if a.size != n or not np.all(np.isfinite(a)):
+        raise PerchError(f"{path}: {where} must be {n} finite numbers, got {value!r}")
+    return a
+
+
+def load_scene_camera(path: str | Path) -> dict[int, dict]:
+    """`scene_camera.json`: image id -> entry (raw BOP dict, mm), each checked to have a 3x3 `cam_K`."""
+    path = Path(path)
+    data = _id_keyed(read_json(path, "scene_camera.json"), path)
+    for im_id, entry in data.items():
+        if not isinstance(entry, dict) or "cam_K" not in entry:
+            raise PerchError(f"{path}: entry for image {im_id} has no 'cam_K'")
+        _floats(entry["cam_K"], 9, path, f"image {im_id} cam_K")
+        for key, n in (("cam_R_w2c", 9), ("cam_t_w2c", 3)):
+            if key in entry:
+                _floats(entry[key], n, path, f"image {im_id} {key}")
+        if "depth_scale" in entry:
+            _floats(entry["depth_scale"], 1, path, f"image {im_id} depth_scale")
+    return data  # type: ignore[return-value]
+
+
+@dataclass(frozen=True)
+class GtInstance:
+    """One ground-truth object instance: model -> camera, translation in metres."""
+
+    obj_id: int
+    R_m2c: np.ndarray
+    t_m2c_m: np.ndarray
+
+
+def load_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
+    """`scene_gt.json`: image id -> instances in file order (BOP mm converted to metres)."""
+    path = Path(path)
+    data = _id_keyed(read_json(path, "scene_gt.json"), path)
+    out: dict[int, list[GtInstance]] = {}
+    for im_id, insts in data.items():
+        if not isinstance(insts, list):
+            raise PerchError(f"{path}: image {im_id} must map to a list of instances")
+        lst = []
+        for k, g in enumerate(insts):
+            where = f"image {im_id} instance {k}"
+            if not isinstance(g, dict) or not {"obj_id", "cam_R_m2c", "cam_t_m2c"} <= set(g):
+                raise PerchError(f"{path}: {where} needs obj_id, cam_R_m2c and cam_t_m2c")
+            try:
+                obj_id = int(g["obj_id"])
+            except (TypeError, ValueError):
+                raise PerchError(f"{path}: {where} obj_id {g['obj_id']!r} is not an integer") from None
+            R = _floats(g["cam_R_m2c"], 9, path, f"{where} cam_R_m2c").reshape(3, 3)
+            t = _floats(g["cam_t_m2c"], 3, path, f"{where} cam_t_m2c") / 1000.0
+            lst.append(GtInstance(obj_id, R, t))
+        out[im_id] = lst
+    return out
+
+
+def load_scene_gt_info(path: str | Path) -> dict[int, list[dict]]:
+    """`scene_gt_info.json`: image id -> per-instance dicts (we use `visib_fract`, 0..1)."""
+    path = Path(path)
+    data = _id_keyed(read_json(path, "scene_gt_info.json"), path)
+    for im_id, insts in data.items():
+        if not isinstance(insts, list) or not all(isinstance(g, dict) for g in insts):
+            raise PerchError(f"{path}: image {im_id} must map to a list of objects")
+    return data  # type: ignore[return-value]
+
+
+def load_models_info(path: str | Path) -> dict[int, dict]:
+    """`models_info.json`: object id -> info (`diameter` etc. in mm; optional `name`)."""
+    path = Path(path)
+    data = _id_keyed(read_json(path, "models_info.json"), path)
+    for obj_id, info in data.items():
+        if not isinstance(info, dict):
+            raise PerchError(f"{path}: entry for object {obj_id} must be a JSON object")
+    return data  # type: ignore[return-value]
+
+
+# ----------------------------------------------------------------------------- dataset layout
+
+
+@dataclass
+class Dataset:
+    """A BOP dataset on disk: where things are, and the dataset-wide JSON files."""
+
+    root: Path
+    split: str
+    models_dir: Path
+    models_info: dict[int, dict] = field(default_factory=dict)
+    camera_info: dict | None = None  # root camera.json (width/height checked against images)
+
+    @property
+    def split_dir(self) -> Path:
+        return self.root / self.split
+
+    def scene_dir(self, scene_id: int) -> Path:
+        return self.split_dir / f"{scene_id:06d}"
+
+    def scene_ids(self) -> list[int]:
+        """Scene folders of the split (integer-named), sorted."""
+        ids = []
+        for p in self.split_dir.iterdir():
+            if p.is_dir() and p.name.isdigit():
+                ids.append(int(p.name))
+        return sorted(ids)
+
+    def model_path(self, obj_id: int) -> Path | None:
+        """`models/obj_{id:06d}.obj` or `.ply`, or None when neither exists."""
+        for suffix in MESH_SUFFIXES:
+            p = self.models_dir / f"obj_{obj_id:06d}{suffix}"
+            if p.is_file():
+                return p
+        return None
+
+    def object_name(self, obj_id: int) -> str:
+        """"004 sugar box" from models_info's `name` "004_sugar_box", else "obj 3"."""
+        name = self.models_info.get(obj_id, {}).get("name")
+        return str(name).replace("_", " ") if name else f"obj {obj_id}"
+
+
+def open_dataset(root: str | Path, split: str = "test", models_dir: str | Path | None = None) -> Dataset:
+    """Check the dataset's layout and read its dataset-wide files.
+
+    The models folder is `models_dir` when given, else `models_dir` (or `models`) from
+    `dataset_info.json` at the root (relative to the root), else `root/models`.
+    """
+    root = Path(root)
+    if not root.is_dir():
+        raise PerchError(f"dataset folder not found: {root}")
+    split_dir = root / split
+    if not split_dir.is_dir():
+        have = sorted(p.name for p in root.iterdir() if p.is_dir())
+        raise PerchError(f"split folder not found: {split_dir} (the dataset has {have})")
+    if models_dir is None:
+        info_path = root / "dataset_info.json"
+        if info_path.is_file():
+            info = read_json(info_path, "dataset_info.json")
+            rel = info.get("models_dir", info.get("models")) if isinstance(info, dict) else None
+            if rel is not None:
+                if not isinstance(rel, str):
+                    raise PerchError(f"{info_path}: 'models_dir' must be a path string, got {rel!r}")
+                models_dir = root / rel
+        if models_dir is None:
+            models_dir = root / "models"
+    models_dir = Path(models_dir)
+    if not models_dir.is_dir():
+        raise PerchError(f"models folder not found: {models_dir} (pass --models DIR)")
+    info_file = models_dir / "models_info.json"
+    models_info = load_models_info(info_file) if info_file.exists() else {}
+    cam_file = root / "camera.json"
+    camera_info = None
+    if cam_file.exists():
+        camera_info = read_json(cam_file, "camera.json")
+        if not isinstance(camera_info, dict):
+            raise PerchError(f"{cam_file} must hold a JSON object")
+    ds = Dataset(root, split, models_dir, models_info, camera_info)
+    if not ds.scene_ids():
+        raise PerchError(f"no scene folders (000001, ...) in {split_dir}")
+    return ds
+
+
+def image_path(scene_dir: Path, im_id: int, kind: str = "rgb") -> Path | None:
+    """`scene_dir/{kind}/{im_id:06d}.png|.jpg|...`, or None when absent."""
+    for suffix in IMAGE_SUFFIXES:
+        p = scene_dir / kind / f"{im_id:06d}{suffix}"
+        if p.is_file():
+            return p
+    return None
+
+
+def image_size(path: Path) -> tuple[int, int]:
+    """(width, height) from the image header without decoding the pixels."""
+    from PIL import Image, UnidentifiedImageError
+
+    try:
+        with Image.open(path) as im:
+            return im.size
+    except (UnidentifiedImageError, OSError) as e:
+        raise PerchError(f"cannot read image {path}: {e}") from None
+
+
+def camera_for_image(ds: Dataset, entry: dict, rgb: Path, im_id: int, source: Path) -> Camera:
+    """The image's `Camera`, refusing images whose size does not fit `cam_K` (or root camera.json).
+
+    Besides `Camera`'s own checks, the principal point must lie within 15% of the
+    image size from its centre: real cameras have it within a few percent, while an
+    image resized by 2x (either way) after calibration puts it 25% or more away.
+    """
+    width, height = image_size(rgb)
+    if ds.camera_info is not None:
+        w0, h0 = ds.camera_info.get("width"), ds.camera_info.get("height")
+        if w0 is not None and h0 is not None and (int(w0), int(h0)) != (width, height):
+            raise PerchError(f"image {rgb} is {width}x{height} but {ds.root / 'camera.json'} says {w0}x{h0}")
+    cam = camera_from_entry(entry, width, height, source=f"{source} image {im_id} ({rgb.name})")
+    if abs(cam.cx - (width - 1) / 2) > 0.15 * width or abs(cam.cy - (height - 1) / 2) > 0.15 * height:
+        raise PerchError(
+            f"image {rgb} is {width}x{height} but cam_K in {source} (image {im_id}) has its principal point at "
+            f"({cam.cx:.1f}, {cam.cy:.1f}), implying about {round(2 * cam.cx + 1)}x{round(2 * cam.cy + 1)}"
+        )
+    return cam
+
+
+# ----------------------------------------------------------------------------- table from depth
+
+
+def read_depth_mm(path: str | Path, depth_scale: float) -> np.ndarray:
+    """A BOP depth PNG (uint16) as float32 millimetres (raw * depth_scale); 0 = no reading."""
+    from PIL import Image, UnidentifiedImageError
+
+    path = Path(path)
+    try:
+        with Image.open(path) as im:
+            raw = np.asarray(im)
+    except FileNotFoundError:
+        raise PerchError(f"depth image not found: {path}") from None
+    except (UnidentifiedImageError, OSError) as e:
+        raise PerchError(f"cannot read depth image {path}: {e}") from None
+    if raw.ndim != 2:
+        raise PerchError(f"depth image {path} must be single-channel (16-bit), got shape {raw.shape}")
+    return raw.astype(np.float32) * np.float32(depth_scale)
+
+
+def depth_points_m(depth_mm: np.ndarray, camera: Camera, stride: int = 4) -> np.ndarray:
+    """Back-project every `stride`-th valid depth pixel to camera-frame points (M, 3), metres."""
+    if depth_mm.shape != (camera.height, camera.width):
+        raise PerchError(
+            f"depth image is {depth_mm.shape[1]}x{depth_mm.shape[0]} but the camera is {camera.width}x{camera.height}"
+        )
+    v, u = np.mgrid[0 : camera.height : stride, 0 : camera.width : stride]
+    z = depth_mm[v, u].astype(np.float64) / 1000.0
+    ok = z > 0
+    u, v, z = u[ok], v[ok], z[ok]
+    return np.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], -1)
+
+
+def fit_plane_ransac(
+    points_m: np.ndarray, threshold_m: float = 0.01, iterations: int = 500, seed: int = 0
+) -> tuple[np.ndarray, float, np.ndarray]:
+    """The plane n . X + d = 0 with most points within `threshold_m`, refined by least squares on them.
+
+    Returns (unit normal n, d metres, inlier mask). n is oriented so that d > 0, i.e.
+    the camera origin lies on the normal's side (the side the camera sees). Fixed
+    `seed`: the same depth image always gives the same plane.
+    """
+    P = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
+    if len(P) < 3:
+        raise PerchError(f"plane fit needs at least 3 depth points, got {len(P)}")
+    rng = np.random.default_rng(seed)
+    best_count, best = -1, None
+    for _ in range(iterations):
+        a, b, c = P[rng.choice(len(P), 3, replace=False)]
+        n = np.cross(b - a, c - a)
+        norm = np.linalg.norm(n)
+        if norm < 1e-12:
+            continue
+        n /= norm
+        count = int(np.count_nonzero(np.abs(P @ n - n @ a) < threshold_m))
+        if count > best_count:
+            best_count, best = count, (n, -float(n @ a))
+    if best is None:
+        raise PerchError("plane fit failed: the depth points are collinear")
+    n, d = best
+    inliers = np.abs(P @ n + d) < threshold_m
+    # Total least squares on the inliers: the normal is the smallest principal axis.
+    Q = P[inliers]
+    centroid = Q.mean(0)
+    n = np.linalg.svd(Q - centroid, full_matrices=False)[2][-1]
+    d = -float(n @ centroid)
+    inliers = np.abs(P @ n + d) < threshold_m
+    if d < 0:
+        n, d = -n, -d
+    return n, d, inliers
+
+
+def table_from_plane(normal_c: np.ndarray, d_m: float) -> Table:
+    """A table frame on the plane n . X + d = 0 (camera frame, metres), +z = n towards the camera.
+
+    Axes chosen deterministically as in the shared ycbv frames' `cam_R_w2c`: x is the
+    camera's x axis projected onto the plane, y = z x x; the origin is where the
+    optical axis meets the plane (the foot of the perpendicular from the camera
+    when the optical axis runs parallel to it).
+    """
+    n = np.asarray(normal_c, dtype=np.float64).reshape(3)
+    n = n / np.linalg.norm(n)
+    if d_m < 0:
+        n, d_m = -n, -d_m
+    x = np.array([1.0, 0.0, 0.0]) - n[0] * n
+    if np.linalg.norm(x) < 1e-6:  # camera x along the normal: fall back to camera y
+        x = np.array([0.0, 1.0, 0.0]) - n[1] * n
+    x /= np.linalg.norm(x)
+    y = np.cross(n, x)
+    R = np.stack([x, y, n], axis=1)  # columns: table axes in camera frame
+    if abs(n[2]) > 1e-6 and -d_m / n[2] > 0:
+        origin = np.array([0.0, 0.0, -d_m / n[2]])
+    else:
+        origin = -d_m * n
+    return Table(R, origin)
+
+
+def table_from_depth(depth_path: str | Path, camera: Camera, depth_scale: float, threshold_m: float = 0.01) -> Table:
+    """RANSAC plane fit of a BOP depth image: the dominant plane taken as the table top."""
+    depth_mm = read_depth_mm(depth_path, depth_scale)
+    try:
+        pts = depth_points_m(depth_mm, camera)
+        n, d, inliers = fit_plane_ransac(pts, threshold_m=threshold_m)
+        return table_from_plane(n, d)
+    except PerchError as e:
+        raise PerchError(f"{depth_path}: {e}") from None
+
+
+def table_source_for(entry: dict, scene_dir: Path, im_id: int, source: str | Path, how: str = "auto") -> str:
+    """Which table frame an image will use: "cam_R_w2c" or "depth RANSAC"; PerchError naming what is missing.
+
+    how: "auto" (the camera entry's cam_R_w2c/cam_t_w2c, else a plane fit to the depth
+    image), "w2c" or "depth" to insist on one.
+    """
+    if how not in ("auto", "w2c", "depth"):
+        raise PerchError(f"table source must be auto, w2c or depth, got {how!r}")
+    if how in ("auto", "w2c") and "cam_R_w2c" in entry and "cam_t_w2c" in entry:
+        return "cam_R_w2c"
+    if how == "w2c":
+        raise PerchError(f"{source}: image {im_id} has no cam_R_w2c/cam_t_w2c (the table frame)")
+    depth = image_path(scene_dir, im_id, "depth")
+    if depth is None or "depth_scale" not in entry:
+        missing = "depth image" if depth is None else f"'depth_scale' in {source}"
+        raise PerchError(
+            f"no table frame for scene {scene_dir.name} image {im_id}: {source} has no cam_R_w2c/cam_t_w2c "
+            f"and the {missing} for a plane fit is missing ({scene_dir / 'depth' / f'{im_id:06d}.png'})"
+        )
+    return "depth RANSAC"
+
+
+def table_for_image(
+    entry: dict, scene_dir: Path, im_id: int, camera: Camera, source: str | Path, how: str = "auto"
+) -> tuple[Table, str]:
+    """The table frame for one image and where it came from (see `table_source_for`)."""
+    kind = table_source_for(entry, scene_dir, im_id, source, how)
+    if kind == "cam_R_w2c":
+        return Table.from_entry(entry, source=f"{source} image {im_id}"), kind
+    depth = image_path(scene_dir, im_id, "depth")
+    return table_from_depth(depth, camera, float(entry["depth_scale"])), kind
+
+
+# ----------------------------------------------------------------------------- results.csv
+
+
+@dataclass(frozen=True)
+class BopResult:
+    """One row of a BOP results file. `t_mm` in millimetres (BOP), `time_s` seconds for the whole image."""
+
+    scene_id: int
+    im_id: int
+    obj_id: int
+    score: float
+    R: np.ndarray
+    t_mm: np.ndarray
+    time_s: float = -1.0
+
+    def line(self) -> str:
+        # repr of a Python float round-trips exactly.
+        R = " ".join(repr(float(v)) for v in np.asarray(self.R, dtype=np.float64).reshape(9))
+        t = " ".join(repr(float(v)) for v in np.asarray(self.t_mm, dtype=np.float64).reshape(3))
+        return f"{self.scene_id},{self.im_id},{self.obj_id},{float(self.score)!r},{R},{t},{float(self.time_s)!r}"
+
+
+def write_results(path: str | Path, results: list[BopResult]) -> None:
+    """Write a whole results file atomically (temporary file, fsync, rename)."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp")
+    with open(tmp, "w") as f:
+        f.write(RESULTS_HEADER + "\n")
+        for r in results:
+            f.write(r.line() + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+    os.replace(tmp, path)
+
+
+def read_results(path: str | Path) -> list[BopResult]:
+    """Read a BOP results file; malformed lines raise PerchError naming file and line."""
+    path = Path(path)
+    try:
+        lines = path.read_text().splitlines()
+    except FileNotFoundError:
+        raise PerchError(f"results file not found: {path}") from None
+    except OSError as e:
+        raise PerchError(f"cannot read results file {path}: {e}") from None
+    if not lines or lines[0].strip() != RESULTS_HEADER:
+        raise PerchError(f"{path}: first line must be the header {RESULTS_HEADER!r}")
+    out = []
+    for no, line in enumerate(lines[1:], start=2):
+        if not line.strip():
+            continue
+        parts = line.split(",")
+        try:
+            if len(parts) != 7:
+                raise ValueError(f"{len(parts)} comma-separated fields instead of 7")
+            R = np.array([float(v) for v in parts[4].split()], dtype=np.float64)
+            t = np.array([float(v) for v in parts[5].split()], dtype=np.float64)
+            if R.size != 9 or t.size != 3:
+                raise ValueError("R needs 9 values and t 3")
+            ids = int(parts[0]), int(parts[1]), int(parts[2])
+            out.append(BopResult(*ids, float(parts[3]), R.reshape(3, 3), t, float(parts[6])))
+        except ValueError as e:
+            raise PerchError(f"{path} line {no}: malformed result ({e})") from None
+    return out

@@ -1,0 +1,936 @@
+"""`python -m perch_warp eval`: the thesis's evaluation protocol (§4.1) on a BOP dataset.
+
+Targets: every ground-truth instance of a selected object in the selected images.
+For each, the table frame comes from the image's `cam_R_w2c`/`cam_t_w2c` (else a
+RANSAC plane fit to its depth image); the object's height, roll and pitch come from
+the ground truth (`decompose_on_table`), and only (x, y, yaw) are searched over a
+region that never depends on the ground truth (default: the visible table clipped
+to 1 m x 1 m, `SearchSpace.visible_table`).
+
+Outputs in OUTDIR:
+  results.csv      BOP results (mm); the estimate for the k-th ground-truth instance of
+                   an object in an image is the k-th row of that object in that image
+                   (BOP rows have no instance index). `time` is the seconds spent on the
+                   whole image (the sum over its targets), the same on all its rows, as
+                   the BOP toolkit requires.
+  targets.jsonl    one line per finished target: exact per-target time and search details.
+  per_target.csv   errors of every target (ADD-S, ADD, translation mm, yaw deg, ...).
+  summary.json     metrics per object and over all objects; table.txt the printed table.
+  adds_curve.png, occlusion.png (when scene_gt_info.json exists), errors.png, gallery.png.
+
+Resuming: both results.csv and targets.jsonl are brought up to date after every
+target (results.csv is rewritten atomically, so it is always a valid BOP file); a
+rerun of the same command skips the targets found in either file.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from collections import Counter, defaultdict
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from . import bop, pose_error
+from .camera import Camera
+from .errors import PerchError
+from .table import RestingPose, Table, decompose_on_table
+
+ADDS_THRESHOLD_M = 0.02
+AUC_MAX_THRESHOLD_M = 0.1
+OCCLUSION_BINS = np.linspace(0.0, 1.0, 11)
+CONFIG_FILE = "eval_config.json"
+JOURNAL_FILE = "targets.jsonl"
+RESULTS_FILE = "results.csv"
+
+# Arguments that choose what to evaluate or where to write, not how to search:
+# changing them between runs of one OUTDIR is fine.
+_NOT_SEARCH_OPTIONS = {
+    "out", "restart", "max_images", "scenes", "objects", "gallery", "no_plots", "device", "func", "command",
+    "quiet", "verbose", "progress", "top_k", "batch_pixels",
+}
+# Recorded separately in eval_config.json.
+_EVAL_ARGS = {"dataset", "split", "models", "table_source"}
+
+
+# ----------------------------------------------------------------------------- targets
+
+
+@dataclass(frozen=True)
+class Target:
+    """One ground-truth instance to find. `inst` is its index in the image's scene_gt.json list."""
+
+    scene_id: int
+    im_id: int
+    inst: int
+    obj_id: int
+    R_gt: np.ndarray  # model -> camera
+    t_gt_m: np.ndarray  # metres
+    visib_fract: float | None = None
+
+    @property
+    def key(self) -> tuple[int, int, int]:
+        return (self.scene_id, self.im_id, self.inst)
+
+
+@dataclass
+class ImageInfo:
+    scene_id: int
+    im_id: int
+    rgb: Path
+    camera: Camera
+    entry: dict  # raw scene_camera.json entry
+    camera_file: Path
+    targets: list[Target] = field(default_factory=list)
+
+
+@dataclass
+class Selection:
+    images: list[ImageInfo]
+    skipped_no_model: Counter  # obj_id -> instances skipped because the mesh is absent
+    model_paths: dict[int, Path]
+
+    @property
+    def targets(self) -> list[Target]:
+        return [t for im in self.images for t in im.targets]
+
+
+def select_targets(
+    ds: bop.Dataset,
+    scenes: Sequence[int] | None = None,
+    objects: Sequence[int] | None = None,
+    max_images: int | None = None,
+    table_source: str = "auto",
+) -> Selection:
+    """Every instance of the selected objects in the selected scenes, images in (scene, image) order.
+
+    An instance whose model has no mesh is skipped and counted, unless the object was
+    asked for by `objects` or is listed in models_info.json: then the missing mesh is
+    an error naming the expected file. `max_images` keeps the first N images that have
+    a target. Cameras (image size against cam_K) and the availability of a table frame
+    are checked here, before any search, so a bad dataset fails at once.
+    """
+    all_scenes = ds.scene_ids()
+    if scenes:
+        missing = sorted(set(scenes) - set(all_scenes))
+        if missing:
+            raise PerchError(f"scene(s) {missing} not found in {ds.split_dir} (has {all_scenes[:20]})")
+        all_scenes = [s for s in all_scenes if s in set(scenes)]
+    wanted = set(objects) if objects else None
+    model_paths: dict[int, Path] = {}
+    for obj_id in sorted(wanted or ()):
+        p = ds.model_path(obj_id)
+        if p is None:
+            expected = ds.models_dir / f"obj_{obj_id:06d}.obj"
+            raise PerchError(f"no mesh for object {obj_id}: expected {expected} (or .ply)")
+        model_paths[obj_id] = p
+
+    images: list[ImageInfo] = []
+    skipped: Counter = Counter()
+    for scene_id in all_scenes:
+        sdir = ds.scene_dir(scene_id)
+        gt_file, cam_file, info_file = sdir / "scene_gt.json", sdir / "scene_camera.json", sdir / "scene_gt_info.json"
+        gts = bop.load_scene_gt(gt_file)
+        cams = bop.load_scene_camera(cam_file)
+        infos = bop.load_scene_gt_info(info_file) if info_file.exists() else None
+        for im_id in sorted(gts):
+            if max_images is not None and len(images) >= max_images:
+                break
+            targets = []
+            for k, g in enumerate(gts[im_id]):
+                if wanted is not None and g.obj_id not in wanted:
+                    continue
+                if g.obj_id not in model_paths:
+                    p = ds.model_path(g.obj_id)
+                    if p is None:
+                        if g.obj_id in ds.models_info:
+                            raise PerchError(
+                                f"{ds.models_dir / 'models_info.json'} lists object {g.obj_id} but its mesh "
+                                f"{ds.models_dir / f'obj_{g.obj_id:06d}.obj'} (or .ply) is missing"
+                            )
+                        skipped[g.obj_id] += 1
+                        continue
+                    model_paths[g.obj_id] = p
+                vf = None
+                if infos is not None:
+                    lst = infos.get(im_id)
+                    if lst is None or len(lst) != len(gts[im_id]):
+                        raise PerchError(f"{info_file}: image {im_id} must list one entry per instance of {gt_file}")
+                    if "visib_fract" in lst[k]:
+                        vf = float(lst[k]["visib_fract"])
+                targets.append(Target(scene_id, im_id, k, g.obj_id, g.R_m2c, g.t_m2c_m, vf))
+            if not targets:
+                continue
+            if im_id not in cams:
+                raise PerchError(f"{cam_file} has no entry for image {im_id} (listed in {gt_file})")
+            rgb = bop.image_path(sdir, im_id, "rgb")
+            if rgb is None:
+                raise PerchError(f"image not found: {sdir / 'rgb' / f'{im_id:06d}.png'} (listed in {gt_file})")
+            entry = cams[im_id]
+            camera = bop.camera_for_image(ds, entry, rgb, im_id, cam_file)
+            bop.table_source_for(entry, sdir, im_id, cam_file, table_source)  # fail before any search
+            images.append(ImageInfo(scene_id, im_id, rgb, camera, entry, cam_file, targets))
+    return Selection(images, skipped, model_paths)
+
+
+# ----------------------------------------------------------------------------- estimator
+
+
+@dataclass
+class Estimate:
+    """A model -> camera pose (metres) with the searcher's score and free-form details."""
+
+    R_m2c: np.ndarray
+    t_m2c_m: np.ndarray
+    score: float
+    details: dict = field(default_factory=dict)
+
+
+#: (target, image_rgb uint8 HxWx3, camera, table, resting, space) -> Estimate
+Estimator = Callable[[Target, np.ndarray, Camera, Table, RestingPose, object], Estimate]
+#: (camera, table, resting) -> search space (must not look at the ground-truth x, y, yaw)
+SpaceFn = Callable[[Camera, Table, RestingPose], object]
+
+
+class EngineEstimator:
+    """The real search: one `Engine` per object, built on first use (outside the timed call)."""
+
+    def __init__(self, model_paths: dict[int, Path], weights_spec: str = "auto", device: str | None = None,
+                 config=None):
+        self.model_paths = model_paths
+        self.weights_spec = weights_spec
+        self.device = device
+        self.config = config  # EngineConfig, None: its defaults
+        self._weights = None
+        self._engines: dict[int, object] = {}
+
+    def prepare(self, obj_id: int) -> None:
+        if obj_id in self._engines:
+            return
+        from .engine import Engine
+        from .features import load_feature_weights
+        from .mesh import load_mesh
+
+        if self._weights is None:
+            self._weights = load_feature_weights(self.weights_spec)
+        mesh = load_mesh(self.model_paths[obj_id])
+        self._engines[obj_id] = Engine(mesh, self._weights, self.device, self.config)
+
+    def __call__(self, target: Target, image_rgb, camera, table, resting, space) -> Estimate:
+        self.prepare(target.obj_id)
+        res = self._engines[target.obj_id].estimate(image_rgb, camera, table, resting, space, progress=False)
+        T = np.asarray(res.T_m2c, dtype=np.float64)
+        details = {
+            "n_candidates": int(res.n_candidates),
+            "timings_s": {k: float(v) for k, v in res.timings.items()},
+            "device": res.device,
+            "top_k": [{"x_m": c.x_m, "y_m": c.y_m, "yaw_rad": c.yaw_rad, "score": c.score} for c in res.top_k],
+        }
+        return Estimate(T[:3, :3], T[:3, 3], float(res.score), details)
+
+
+def visible_table_space(
+    xy_step_m: float = 0.01, yaw_step_rad: float = math.radians(5.0), clip_m: float = 1.0
+) -> SpaceFn:
+    """The default region: the table the image sees, clipped to clip_m x clip_m (no ground truth used)."""
+    from .search_space import SearchSpace
+
+    def space_fn(camera: Camera, table: Table, resting: RestingPose):
+        return SearchSpace.visible_table(camera, table, xy_step_m=xy_step_m, yaw_step_rad=yaw_step_rad, clip_m=clip_m)
+
+    return space_fn
+
+
+# ----------------------------------------------------------------------------- resume state
+
+
+@dataclass
+class Done:
+    """A finished target: its estimate, as read back from results.csv or the journal."""
+
+    obj_id: int
+    R: np.ndarray
+    t_m: np.ndarray
+    score: float
+    time_s: float
+    details: dict = field(default_factory=dict)
+
+
+def _load_state(out_dir: Path, selection: Selection) -> tuple[dict, list[bop.BopResult]]:
+    """Finished targets keyed (scene, im, inst), and results.csv rows that match no current target.
+
+    Rows are matched to targets by order: the k-th row of object o in an image is the
+    k-th instance of o in scene_gt.json. Per-target times come from the journal; rows
+    without a journal line get an equal share of their image's time.
+    """
+    done: dict[tuple[int, int, int], Done] = {}
+    foreign: list[bop.BopResult] = []
+    results_path = out_dir / RESULTS_FILE
+    if results_path.exists():
+        rows = bop.read_results(results_path)
+        by_image: dict[tuple[int, int], list[bop.BopResult]] = defaultdict(list)
+        for r in rows:
+            by_image[(r.scene_id, r.im_id)].append(r)
+        insts: dict[tuple[int, int, int], list[int]] = defaultdict(list)
+        for t in selection.targets:
+            insts[(t.scene_id, t.im_id, t.obj_id)].append(t.inst)
+        # Instances of each object in an image, in scene_gt order, are matched to rows in file order.
+        for (scene_id, im_id), im_rows in by_image.items():
+            used: Counter = Counter()
+            for r in im_rows:
+                cand = insts.get((scene_id, im_id, r.obj_id), [])
+                k = used[r.obj_id]
+                used[r.obj_id] += 1
+                if k < len(cand):
+                    share = r.time_s / len(im_rows) if r.time_s >= 0 else float("nan")
+                    done[(scene_id, im_id, cand[k])] = Done(r.obj_id, r.R, r.t_mm / 1000.0, r.score, share)
+                else:
+                    foreign.append(r)
+    journal = out_dir / JOURNAL_FILE
+    if journal.exists():
+        for no, line in enumerate(journal.read_text().splitlines(), start=1):
+            if not line.strip():
+                continue
+            try:
+                j = json.loads(line)
+                key = (int(j["scene_id"]), int(j["im_id"]), int(j["inst"]))
+                d = Done(int(j["obj_id"]), np.asarray(j["R"], dtype=np.float64).reshape(3, 3),
+                         np.asarray(j["t_mm"], dtype=np.float64).reshape(3) / 1000.0, float(j["score"]),
+                         float(j["time_s"]), j.get("details", {}))
+            except (ValueError, KeyError, TypeError) as e:
+                # A line cut short by an interruption is the only expected damage: skip it, the target reruns.
+                print(f"warning: {journal} line {no} unreadable ({e}); that target will run again", file=sys.stderr)
+                continue
+            done[key] = d
+    return done, foreign
+
+
+def _write_results(out_dir: Path, selection: Selection, done: dict, foreign: list[bop.BopResult]) -> None:
+    """Rewrite results.csv from the state: per-image time = sum of its targets' times (BOP needs it equal per image)."""
+    order = {t.key: i for i, t in enumerate(selection.targets)}
+    rows: list[tuple[tuple, bop.BopResult]] = []
+    image_time: dict[tuple[int, int], float] = defaultdict(float)
+    for key, d in done.items():
+        if np.isfinite(d.time_s):
+            image_time[key[:2]] += d.time_s
+    for r in foreign:
+        if r.time_s >= 0:
+            image_time[(r.scene_id, r.im_id)] += r.time_s / max(1, sum(
+                1 for f in foreign if (f.scene_id, f.im_id) == (r.scene_id, r.im_id)))
+    for key, d in done.items():
+        res = bop.BopResult(key[0], key[1], d.obj_id, d.score, d.R, d.t_m * 1000.0, image_time.get(key[:2], -1.0))
+        rows.append(((key[0], key[1], order.get(key, 10**9), key[2]), res))
+    for i, r in enumerate(foreign):
+        t = image_time.get((r.scene_id, r.im_id), r.time_s)
+        rows.append(((r.scene_id, r.im_id, 10**9 + i, 0), bop.BopResult(r.scene_id, r.im_id, r.obj_id, r.score, r.R,
+                                                                       r.t_mm, t)))
+    rows.sort(key=lambda kr: kr[0])
+    bop.write_results(out_dir / RESULTS_FILE, [r for _, r in rows])
+
+
+def _append_journal(out_dir: Path, target: Target, d: Done) -> None:
+    line = json.dumps({
+        "scene_id": target.scene_id, "im_id": target.im_id, "inst": target.inst, "obj_id": target.obj_id,
+        "score": d.score, "time_s": d.time_s, "R": d.R.reshape(9).tolist(), "t_mm": (d.t_m * 1000.0).tolist(),
+        "details": d.details,
+    }, default=_json_default)
+    with open(out_dir / JOURNAL_FILE, "a") as f:
+        f.write(line + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
+def _json_default(o):
+    if isinstance(o, np.generic):
+        return o.item()
+    if isinstance(o, np.ndarray):
+        return o.tolist()
+    if isinstance(o, Path):
+        return str(o)
+    raise TypeError(f"not JSON serialisable: {type(o).__name__}")
+
+
+def _check_config(out_dir: Path, config: dict, restart: bool) -> None:
+    """Refuse to mix results of different search settings in one OUTDIR."""
+    path = out_dir / CONFIG_FILE
+    config = json.loads(json.dumps(config, default=_json_default))  # tuples vs lists, as read back
+    if restart:
+        for name in (RESULTS_FILE, JOURNAL_FILE, CONFIG_FILE):
+            (out_dir / name).unlink(missing_ok=True)
+    elif path.exists() and ((out_dir / RESULTS_FILE).exists() or (out_dir / JOURNAL_FILE).exists()):
+        old = bop.read_json(path, "evaluation settings")
+        diffs = [f"{k}: {old.get(k)!r} then, {config.get(k)!r} now" for k in sorted(set(old) | set(config))
+                 if old.get(k) != config.get(k)]
+        if diffs:
+            raise PerchError(
+                f"{out_dir} holds results made with other settings ({'; '.join(diffs)}): "
+                "use another --out, or --restart to start over"
+            )
+    path.write_text(json.dumps(config, indent=1, default=_json_default) + "\n")
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+@dataclass
+class TableCache:
+    """Table frames per image (the depth fit costs ~50 ms; the errors need them again after the search)."""
+
+    how: str = "auto"
+    tables: dict = field(default_factory=dict)
+
+    def get(self, im: ImageInfo) -> tuple[Table, str]:
+        key = (im.scene_id, im.im_id)
+        if key not in self.tables:
+            self.tables[key] = bop.table_for_image(im.entry, im.rgb.parent.parent, im.im_id, im.camera,
+                                                   im.camera_file, self.how)
+        return self.tables[key]
+
+
+def evaluate(
+    dataset_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    make_estimator: Callable[[dict[int, Path]], Estimator],
+    space_fn: SpaceFn,
+    split: str = "test",
+    scenes: Sequence[int] | None = None,
+    objects: Sequence[int] | None = None,
+    max_images: int | None = None,
+    models_dir: str | Path | None = None,
+    table_source: str = "auto",
+    options: dict | None = None,
+    restart: bool = False,
+    progress: bool = True,
+    plots: bool = True,
+    gallery: int = 4,
+    max_points: int = pose_error.DEFAULT_MAX_POINTS,
+    command: str = "",
+) -> dict:
+    """Run (or continue) the evaluation and write every output; returns the summary dict.
+
+    `make_estimator(mesh paths by object id)` is called once, only when targets remain;
+    the estimator it returns is called once per unfinished target, and `space_fn` gives
+    its search region. `options` (JSON)
+    are the search settings, recorded in eval_config.json and checked on resume.
+    """
+    from .image import load_rgb
+
+    ds = bop.open_dataset(dataset_dir, split, models_dir)
+    selection = select_targets(ds, scenes, objects, max_images, table_source)
+    out_dir = Path(out_dir)
+    out_dir.mkdir(parents=True, exist_ok=True)
+    config = {"dataset": str(Path(dataset_dir).resolve()), "split": split, "table_source": table_source,
+              "options": options or {}}
+    _check_config(out_dir, config, restart)
+    if not selection.targets:
+        raise PerchError(f"no targets: no instance of objects {sorted(objects or [])} with a mesh in {ds.split_dir}")
+    done, foreign = _load_state(out_dir, selection)
+    tables = TableCache(table_source)
+
+    todo = [(im, t) for im in selection.images for t in im.targets if t.key not in done]
+    n_before = len(selection.targets) - len(todo)
+    estimator = make_estimator(selection.model_paths) if todo else None
+    if n_before and todo:
+        print(f"resuming: {n_before} of {len(selection.targets)} targets already done in {out_dir}", file=sys.stderr)
+
+    from tqdm import tqdm
+
+    bar = tqdm(total=len(todo), unit="target", desc="eval", disable=not progress or not todo, dynamic_ncols=True)
+    current: tuple | None = None
+    image = None
+    try:
+        for im, target in todo:
+            if current != (im.scene_id, im.im_id):
+                image = load_rgb(im.rgb)
+                current = (im.scene_id, im.im_id)
+            table, table_how = tables.get(im)
+            resting, _, _, _ = decompose_on_table(table, target.R_gt, target.t_gt_m)
+            space = space_fn(im.camera, table, resting)
+            prepare = getattr(estimator, "prepare", None)
+            if callable(prepare):
+                prepare(target.obj_id)  # building the engine is not part of the per-target runtime
+            t0 = time.perf_counter()
+            est = estimator(target, image, im.camera, table, resting, space)
+            dt = time.perf_counter() - t0
+            details = dict(est.details)
+            details["table"] = table_how
+            details.update(_space_details(space, table, target))
+            d = Done(target.obj_id, np.asarray(est.R_m2c, dtype=np.float64).reshape(3, 3),
+                     np.asarray(est.t_m2c_m, dtype=np.float64).reshape(3), float(est.score), dt, details)
+            # Journal first: if the rewrite below is interrupted, the journal still has the target.
+            _append_journal(out_dir, target, d)
+            done[target.key] = d
+            _write_results(out_dir, selection, done, foreign)
+            bar.set_postfix_str(f"{target.scene_id}/{target.im_id} obj {target.obj_id} {dt:.1f}s")
+            bar.update(1)
+    finally:
+        bar.close()
+    _write_results(out_dir, selection, done, foreign)  # canonical order, also when nothing was left to do
+
+    geometry = GeometryCache(selection.model_paths, max_points)
+    rows = compute_errors(selection, done, tables, geometry)
+    write_per_target(out_dir / "per_target.csv", rows)
+    summary = summarize(rows, ds, selection)
+    summary.update({"dataset": str(ds.root), "split": split, "command": command, "options": options or {},
+                    "table_source": table_source, "outputs": [RESULTS_FILE, JOURNAL_FILE, "per_target.csv",
+                                                              "summary.json", "table.txt"]})
+    table_text = format_table(summary)
+    (out_dir / "table.txt").write_text(table_text + "\n")
+    if plots and rows:
+        summary["outputs"] += make_plots(out_dir, rows, summary, selection, tables, geometry, gallery)
+    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1, default=_json_default) + "\n")
+    summary["table_text"] = table_text
+    return summary
+
+
+def _space_details(space, table: Table, target: Target) -> dict:
+    """Whether the ground truth lies inside the searched region (diagnostic only, never used by the search)."""
+    out: dict = {}
+    try:
+        out["n_candidates"] = int(len(space))
+        _, x, y, _ = decompose_on_table(table, target.R_gt, target.t_gt_m)
+        (x0, x1), (y0, y1) = space.x_range_m, space.y_range_m
+        out["gt_in_region"] = bool(x0 <= x <= x1 and y0 <= y <= y1)
+        out["region_m"] = [[x0, x1], [y0, y1]]
+    except (AttributeError, TypeError):
+        pass
+    return out
+
+
+# ----------------------------------------------------------------------------- errors and metrics
+
+
+class GeometryCache:
+    """Model vertices/faces (metres) per object, and the subsampled points for ADD(-S)."""
+
+    def __init__(self, model_paths: dict[int, Path], max_points: int = pose_error.DEFAULT_MAX_POINTS):
+        self.model_paths = model_paths
+        self.max_points = max_points
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def get(self, obj_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(vertices_m (N, 3), faces (F, 3), ADD-S points_m (<= max_points, 3))."""
+        if obj_id not in self._cache:
+            from .mesh import load_mesh
+
+            mesh = load_mesh(self.model_paths[obj_id])
+            V = np.asarray(mesh.vertices_m, dtype=np.float64)
+            self._cache[obj_id] = (V, np.asarray(mesh.faces), pose_error.subsample_points(V, self.max_points))
+        return self._cache[obj_id]
+
+
+def compute_errors(selection: Selection, done: dict, tables: TableCache, geometry: GeometryCache) -> list[dict]:
+    """One row per finished target: ADD-S/ADD/translation in mm, yaw error in degrees, and the poses on the table."""
+    rows = []
+    for im in selection.images:
+        table, how = tables.get(im)
+        for t in im.targets:
+            d = done.get(t.key)
+            if d is None:
+                continue
+            _, _, pts = geometry.get(t.obj_id)
+            _, xg, yg, yawg = decompose_on_table(table, t.R_gt, t.t_gt_m)
+            try:
+                _, xe, ye, yawe = decompose_on_table(table, d.R, d.t_m)
+            except PerchError:  # a foreign estimate that is not a rotation: it still gets ADD-S
+                xe = ye = yawe = float("nan")
+            rows.append({
+                "scene_id": t.scene_id, "im_id": t.im_id, "inst": t.inst, "obj_id": t.obj_id,
+                "visib_fract": t.visib_fract,
+                "adds_mm": 1000.0 * pose_error.add_s(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
+                "add_mm": 1000.0 * pose_error.add(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
+                "te_mm": 1000.0 * pose_error.translation_error(d.t_m, t.t_gt_m),
+                "yaw_err_deg": math.degrees(pose_error.yaw_error(yawe, yawg)) if np.isfinite(yawe) else float("nan"),
+                "x_gt_m": xg, "y_gt_m": yg, "yaw_gt_deg": math.degrees(yawg),
+                "x_est_m": xe, "y_est_m": ye, "yaw_est_deg": math.degrees(yawe),
+                "score": d.score, "time_s": d.time_s, "table": how,
+                "gt_in_region": d.details.get("gt_in_region"), "n_candidates": d.details.get("n_candidates"),
+                "R_est": d.R, "t_est_m": d.t_m, "R_gt": t.R_gt, "t_gt_m": t.t_gt_m,
+            })
+    return rows
+
+
+_PER_TARGET_COLUMNS = [
+    "scene_id", "im_id", "inst", "obj_id", "visib_fract", "adds_mm", "add_mm", "te_mm", "yaw_err_deg",
+    "x_gt_m", "y_gt_m", "yaw_gt_deg", "x_est_m", "y_est_m", "yaw_est_deg", "score", "time_s", "table",
+    "gt_in_region", "n_candidates",
+]
+
+
+def write_per_target(path: Path, rows: list[dict]) -> None:
+    """per_target.csv: errors in mm / degrees, table-frame poses in metres / degrees."""
+    import csv
+
+    with open(path, "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(_PER_TARGET_COLUMNS)
+        for r in rows:
+            w.writerow(["" if r[c] is None else (f"{r[c]:.10g}" if isinstance(r[c], float) else r[c])
+                        for c in _PER_TARGET_COLUMNS])
+
+
+def _metrics(rows: list[dict]) -> dict:
+    adds_m = np.array([r["adds_mm"] for r in rows], dtype=np.float64) / 1000.0
+    te = np.array([r["te_mm"] for r in rows], dtype=np.float64)
+    yaw = np.array([r["yaw_err_deg"] for r in rows], dtype=np.float64)
+    times = np.array([r["time_s"] for r in rows], dtype=np.float64)
+
+    def stat(fn, a):
+        a = a[np.isfinite(a)]
+        return float(fn(a)) if a.size else None
+
+    return {
+        "n": len(rows),
+        "auc": pose_error.auc(adds_m, AUC_MAX_THRESHOLD_M),
+        "auc_posecnn": pose_error.auc_posecnn(adds_m, AUC_MAX_THRESHOLD_M),
+        "adds_below_2cm_pct": pose_error.accuracy_below(adds_m, ADDS_THRESHOLD_M),
+        "mean_adds_mm": stat(np.mean, adds_m * 1000.0),
+        "median_adds_mm": stat(np.median, adds_m * 1000.0),
+        "mean_te_mm": stat(np.mean, te),
+        "median_te_mm": stat(np.median, te),
+        "mean_yaw_err_deg": stat(np.mean, yaw),
+        "median_yaw_err_deg": stat(np.median, yaw),
+        "mean_time_s": stat(np.mean, times),
+        "gt_outside_region": sum(1 for r in rows if r["gt_in_region"] is False),
+    }
+
+
+def summarize(rows: list[dict], ds: bop.Dataset, selection: Selection) -> dict:
+    """Metrics per object, their mean over objects (thesis Table 4.1's "All Objects"), and pooled over targets."""
+    by_obj: dict[int, list[dict]] = defaultdict(list)
+    for r in rows:
+        by_obj[r["obj_id"]].append(r)
+    objects = {}
+    for obj_id in sorted(by_obj):
+        m = _metrics(by_obj[obj_id])
+        m["name"] = ds.object_name(obj_id)
+        objects[str(obj_id)] = m
+    keys = ("auc", "auc_posecnn", "adds_below_2cm_pct")
+    mean_over_objects = {k: float(np.mean([o[k] for o in objects.values()])) if objects else None for k in keys}
+    pooled = _metrics(rows) if rows else {}
+    summary = {
+        "metric": "ADD-S",
+        "auc_max_threshold_m": AUC_MAX_THRESHOLD_M,
+        "adds_threshold_m": ADDS_THRESHOLD_M,
+        "n_images": len(selection.images),
+        "n_targets": len(selection.targets),
+        "n_evaluated": len(rows),
+        "skipped_no_model": {str(k): v for k, v in sorted(selection.skipped_no_model.items())},
+        "objects": objects,
+        "all_objects": mean_over_objects,
+        "pooled": pooled,
+        "mean_runtime_s_per_target": pooled.get("mean_time_s"),
+    }
+    occ = occlusion_accuracy(rows)
+    if occ is not None:
+        summary["occlusion"] = occ
+    return summary
+
+
+def occlusion_accuracy(rows: list[dict]) -> dict | None:
+    """ADD-S < 2 cm accuracy (%) in bins of occlusion = 1 - visib_fract; None without visib_fract."""
+    rows = [r for r in rows if r["visib_fract"] is not None]
+    if not rows:
+        return None
+
+    def binned(rs):
+        occ = np.array([1.0 - r["visib_fract"] for r in rs])
+        ok = np.array([r["adds_mm"] < ADDS_THRESHOLD_M * 1000.0 for r in rs])
+        idx = np.clip(np.digitize(occ, OCCLUSION_BINS[1:-1]), 0, len(OCCLUSION_BINS) - 2)
+        n = np.bincount(idx, minlength=len(OCCLUSION_BINS) - 1)
+        hits = np.bincount(idx, weights=ok.astype(float), minlength=len(OCCLUSION_BINS) - 1)
+        acc = [float(100.0 * h / k) if k else None for h, k in zip(hits, n, strict=True)]
+        return {"n": n.tolist(), "accuracy_pct": acc}
+
+    by_obj: dict[int, list[dict]] = defaultdict(list)
+    for r in rows:
+        by_obj[r["obj_id"]].append(r)
+    return {
+        "bin_edges_occlusion": OCCLUSION_BINS.tolist(),
+        "all": binned(rows),
+        "objects": {str(k): binned(v) for k, v in sorted(by_obj.items())},
+    }
+
+
+def format_table(summary: dict) -> str:
+    """The summary as thesis Table 4.1: AUC and ADD-S < 2 cm per object, all objects, mean runtime."""
+    lines = [f"{'objects':<26}{'n':>6}{'AUC':>9}{'<2cm':>9}{'te med mm':>11}{'yaw med deg':>13}"]
+    lines.append("-" * len(lines[0]))
+
+    def fmt(v, spec):
+        return format(v, spec) if v is not None and np.isfinite(v) else "-"
+
+    for obj in summary["objects"].values():
+        lines.append(f"{obj['name'][:25]:<26}{obj['n']:>6}{fmt(obj['auc'], '9.2f')}"
+                     f"{fmt(obj['adds_below_2cm_pct'], '9.2f')}"
+                     f"{fmt(obj['median_te_mm'], '11.1f')}{fmt(obj['median_yaw_err_deg'], '13.1f')}")
+    lines.append("-" * len(lines[0]))
+    a, p = summary["all_objects"], summary["pooled"]
+    lines.append(f"{'All Objects (mean)':<26}{'':>6}{fmt(a['auc'], '9.2f')}{fmt(a['adds_below_2cm_pct'], '9.2f')}")
+    if p:
+        lines.append(f"{'All targets (pooled)':<26}{p['n']:>6}{fmt(p['auc'], '9.2f')}"
+                     f"{fmt(p['adds_below_2cm_pct'], '9.2f')}"
+                     f"{fmt(p['median_te_mm'], '11.1f')}{fmt(p['median_yaw_err_deg'], '13.1f')}")
+    rt = summary.get("mean_runtime_s_per_target")
+    lines.append(f"{'Mean Runtime':<26}{'':>6}{fmt(rt, '8.1f')}s per target")
+    notes = ["ADD-S AUC over 0-10 cm (exact area, %); <2cm: % of targets with ADD-S < 2 cm."]
+    skipped = summary.get("skipped_no_model") or {}
+    if skipped:
+        notes.append(f"Skipped (no mesh): {sum(skipped.values())} instances of objects {', '.join(skipped)}.")
+    outside = p.get("gt_outside_region") if p else 0
+    if outside:
+        notes.append(f"{outside} targets lie outside their search region.")
+    return "\n".join(lines + notes)
+
+
+# ----------------------------------------------------------------------------- plots
+
+
+def silhouette(camera: Camera, vertices_m: np.ndarray, faces: np.ndarray, R: np.ndarray, t_m: np.ndarray) -> np.ndarray:
+    """Bool (H, W) mask of the model's projection (every face filled; occlusion by other objects ignored)."""
+    from PIL import Image, ImageDraw
+
+    pc = vertices_m @ np.asarray(R).T + np.asarray(t_m).reshape(3)
+    img = Image.new("1", (camera.width, camera.height), 0)
+    tri_z = pc[faces][:, :, 2]
+    ok = np.all(tri_z > 1e-3, axis=1)
+    if not ok.any():
+        return np.zeros((camera.height, camera.width), dtype=bool)
+    uv = camera.project(pc)
+    tris = uv[faces[ok]]
+    # Faces far outside the image only slow PIL down.
+    lim = 4 * max(camera.width, camera.height)
+    tris = tris[np.all(np.abs(tris) < lim, axis=(1, 2))]
+    draw = ImageDraw.Draw(img)
+    for tri in tris.tolist():
+        draw.polygon([tuple(p) for p in tri], fill=1)
+    return np.asarray(img, dtype=bool)
+
+
+def _crop_box(masks: list[np.ndarray], shape: tuple[int, int], margin: float = 0.35, min_size: int = 80):
+    h, w = shape
+    ys, xs = [], []
+    for m in masks:
+        yy, xx = np.nonzero(m)
+        ys += [yy.min(), yy.max()] if yy.size else []
+        xs += [xx.min(), xx.max()] if xx.size else []
+    if not xs:
+        return 0, h, 0, w
+    cx, cy = (min(xs) + max(xs)) / 2, (min(ys) + max(ys)) / 2
+    half = max(max(xs) - min(xs), max(ys) - min(ys), min_size) * (0.5 + margin)
+    x0, x1 = int(max(0, cx - half)), int(min(w, cx + half + 1))
+    y0, y1 = int(max(0, cy - half)), int(min(h, cy + half + 1))
+    return y0, y1, x0, x1
+
+
+def make_plots(out_dir: Path, rows: list[dict], summary: dict, selection: Selection, tables: TableCache,
+               geometry: GeometryCache, gallery: int = 4) -> list[str]:
+    """adds_curve.png (thesis Fig. 4.2), occlusion.png (Fig. 4.6), errors.png, gallery.png; returns the names."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    made = []
+    by_obj: dict[int, list[dict]] = defaultdict(list)
+    for r in rows:
+        by_obj[r["obj_id"]].append(r)
+    names = {int(k): v["name"] for k, v in summary["objects"].items()}
+
+    # ADD-S threshold curves, one panel per object (+ all targets).
+    panels = [(names[o], by_obj[o]) for o in sorted(by_obj)]
+    if len(panels) > 1:
+        panels.append(("all objects (pooled)", rows))
+    ncols = min(4, len(panels))
+    nrows = math.ceil(len(panels) / ncols)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(3.6 * ncols, 3.2 * nrows), squeeze=False)
+    thr = np.linspace(0.0, AUC_MAX_THRESHOLD_M, 401)
+    for ax, (name, rs) in zip(axes.ravel(), panels, strict=False):
+        e = np.array([r["adds_mm"] for r in rs]) / 1000.0
+        ax.plot(thr * 100, 100 * pose_error.accuracy_curve(e, thr), color="C0", lw=2,
+                label=f"AUC {pose_error.auc(e):.2f}\n<2cm {pose_error.accuracy_below(e):.1f}%")
+        ax.axvline(ADDS_THRESHOLD_M * 100, color="0.6", ls="--", lw=1)
+        ax.set(xlim=(0, AUC_MAX_THRESHOLD_M * 100), ylim=(0, 101), xlabel="ADD-S threshold (cm)",
+               ylabel="accuracy (%)", title=f"{name} (n={len(rs)})")
+        ax.grid(alpha=0.3)
+        ax.legend(loc="lower right", fontsize=8)
+    for ax in axes.ravel()[len(panels):]:
+        ax.axis("off")
+    fig.tight_layout()
+    fig.savefig(out_dir / "adds_curve.png", dpi=110)
+    plt.close(fig)
+    made.append("adds_curve.png")
+
+    occ = summary.get("occlusion")
+    if occ is not None:
+        edges = np.array(occ["bin_edges_occlusion"])
+        centres = 100 * (edges[:-1] + edges[1:]) / 2
+        fig, ax = plt.subplots(figsize=(7.5, 4.2))
+        acc_all = [np.nan if a is None else a for a in occ["all"]["accuracy_pct"]]
+        bars = ax.bar(centres, acc_all, width=8, color="0.8", label="all objects")
+        for b, n in zip(bars, occ["all"]["n"], strict=True):
+            if n:
+                ax.annotate(f"n={n}", (b.get_x() + b.get_width() / 2, b.get_height()), ha="center", va="bottom",
+                            fontsize=7, xytext=(0, 2), textcoords="offset points")
+        for k, (obj, o) in enumerate(occ["objects"].items()):
+            a = np.array([np.nan if v is None else v for v in o["accuracy_pct"]])
+            ax.plot(centres, a, "o-", color=f"C{k}", label=names[int(obj)], ms=4)
+        ax.set(xlim=(0, 100), ylim=(0, 110), xlabel="occlusion = 1 - visib_fract (%)",
+               ylabel="ADD-S < 2 cm (%)", title="accuracy against occlusion", xticks=100 * edges)
+        ax.legend(fontsize=8, loc="lower left")
+        ax.grid(alpha=0.3, axis="y")
+        fig.tight_layout()
+        fig.savefig(out_dir / "occlusion.png", dpi=110)
+        plt.close(fig)
+        made.append("occlusion.png")
+
+    # Translation vs yaw error, to tell position misses from orientation misses.
+    fig, ax = plt.subplots(figsize=(6.5, 4.2))
+    for k, obj in enumerate(sorted(by_obj)):
+        rs = by_obj[obj]
+        ax.scatter([max(r["te_mm"], 0.1) for r in rs], [r["yaw_err_deg"] for r in rs], s=14, color=f"C{k}",
+                   label=names[obj], alpha=0.8)
+    ax.axvline(ADDS_THRESHOLD_M * 1000, color="0.6", ls="--", lw=1)
+    ax.set(xscale="log", xlabel="translation error (mm, log)", ylabel="yaw error (deg)", ylim=(-5, 185),
+           title="errors per target (yaw ignores symmetries)")
+    ax.legend(fontsize=8)
+    ax.grid(alpha=0.3)
+    fig.tight_layout()
+    fig.savefig(out_dir / "errors.png", dpi=110)
+    plt.close(fig)
+    made.append("errors.png")
+
+    if gallery > 0:
+        made.append(_gallery(out_dir / "gallery.png", rows, names, selection, geometry, gallery, plt))
+    return made
+
+
+def _gallery(path: Path, rows: list[dict], names: dict, selection: Selection, geometry: GeometryCache, k: int,
+             plt) -> str:
+    """Best and worst targets by ADD-S: crops with the ground truth (green) and the estimate (magenta)."""
+    from matplotlib.patches import Patch
+
+    from .image import load_rgb
+
+    order = sorted(range(len(rows)), key=lambda i: (rows[i]["adds_mm"], i))
+    # With fewer than 2k targets, the better half are "best" and the rest "worst".
+    n_best = min(k, math.ceil(len(order) / 2))
+    best = order[:n_best]
+    worst = order[n_best:][::-1][:k]
+    sections = [("best", best)] + ([("worst", worst)] if worst else [])
+    images = {(im.scene_id, im.im_id): im for im in selection.images}
+    ncols = max(len(s[1]) for s in sections)
+    fig, axes = plt.subplots(len(sections), ncols, figsize=(3.0 * ncols, 3.4 * len(sections)), squeeze=False)
+    for row_axes, (label, idxs) in zip(axes, sections, strict=True):
+        for ax in row_axes:
+            ax.axis("off")
+        for ax, i in zip(row_axes, idxs, strict=False):
+            r = rows[i]
+            im = images[(r["scene_id"], r["im_id"])]
+            rgb = load_rgb(im.rgb)
+            V, F, _ = geometry.get(r["obj_id"])
+            m_gt = silhouette(im.camera, V, F, r["R_gt"], r["t_gt_m"])
+            m_est = silhouette(im.camera, V, F, r["R_est"], r["t_est_m"])
+            y0, y1, x0, x1 = _crop_box([m_gt, m_est], rgb.shape[:2])
+            ax.imshow(rgb[y0:y1, x0:x1])
+            for m, colour in ((m_gt, (0.0, 0.9, 0.0)), (m_est, (1.0, 0.0, 1.0))):
+                c = m[y0:y1, x0:x1]
+                if c.any():
+                    tint = np.zeros(c.shape + (4,))
+                    tint[c] = (*colour, 0.22)
+                    ax.imshow(tint)
+                    ax.contour(c.astype(float), levels=[0.5], colors=[colour], linewidths=1.4)
+            ax.set_title(f"{label}: {names[r['obj_id']]}\nscene {r['scene_id']} im {r['im_id']} inst {r['inst']}\n"
+                         f"ADD-S {r['adds_mm']:.1f} mm, yaw err {r['yaw_err_deg']:.0f} deg", fontsize=7)
+    fig.legend(handles=[Patch(color=(0, 0.9, 0), label="ground truth"), Patch(color=(1, 0, 1), label="estimate")],
+               loc="lower center", ncol=2, fontsize=8)
+    fig.tight_layout(rect=(0, 0.04, 1, 1))
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+    return path.name
+
+
+# ----------------------------------------------------------------------------- command line
+
+
+def _ids(values: list[str] | None, flag: str) -> list[int] | None:
+    """"3,4,8,9" or "3 4 8 9" -> [3, 4, 8, 9]."""
+    if not values:
+        return None
+    out = []
+    for v in values:
+        for part in str(v).split(","):
+            if part.strip():
+                try:
+                    out.append(int(part))
+                except ValueError:
+                    raise PerchError(f"{flag} takes integer ids like 3,4,8,9, got {part!r}") from None
+    return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `python -m perch_warp eval` (method and search options are the CLI's shared ones)."""
+    from .cli import add_method_arguments, add_search_arguments
+
+    d = parser.add_argument_group("dataset")
+    d.add_argument("--dataset", required=True, type=Path, help="BOP dataset folder (models/, SPLIT/SCENE/...)")
+    d.add_argument("--split", default="test", help="split folder (default: test)")
+    d.add_argument("--scenes", nargs="+", metavar="ID", help="scene ids, e.g. 48,49 (default: all)")
+    d.add_argument("--objects", nargs="+", metavar="ID", help="object ids, e.g. 3,4,8,9 (default: all with a mesh)")
+    d.add_argument("--max-images", type=int, metavar="N", help="only the first N images that have a target")
+    d.add_argument("--models", type=Path, metavar="DIR", help="meshes folder (default: dataset_info.json or models/)")
+    d.add_argument("--table-source", choices=("auto", "w2c", "depth"), default="auto",
+                   help="table frame: cam_R_w2c/cam_t_w2c, else a RANSAC plane fit to depth (auto); or insist on one")
+    o = parser.add_argument_group("output")
+    o.add_argument("--out", required=True, type=Path, metavar="OUTDIR", help="results folder (resumed if it exists)")
+    o.add_argument("--restart", action="store_true", help="discard earlier results in OUTDIR instead of resuming")
+    o.add_argument("--gallery", type=int, default=4, metavar="K",
+                   help="best and worst K cases in gallery.png (0: none)")
+    o.add_argument("--no-plots", action="store_true", help="write no PNG plots")
+    add_method_arguments(parser)
+    add_search_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Entry point of `python -m perch_warp eval`; PerchError propagates to the CLI."""
+    import shlex
+
+    from .cli import engine_config_from_args, search_space_from_args
+
+    objects = _ids(args.objects, "--objects")
+    scenes = _ids(args.scenes, "--scenes")
+    if args.max_images is not None and args.max_images < 1:
+        raise PerchError(f"--max-images must be at least 1, got {args.max_images}")
+    config = engine_config_from_args(args)  # validates the method options before any work
+    options = {k: v for k, v in sorted(vars(args).items()) if k not in _NOT_SEARCH_OPTIONS and k not in _EVAL_ARGS}
+
+    def space_fn(camera: Camera, table: Table, resting: RestingPose):
+        # The region depends on the view and the table only: never on the ground truth.
+        return search_space_from_args(args, camera, table)
+
+    def make_estimator(model_paths: dict[int, Path]) -> Estimator:
+        return EngineEstimator(model_paths, args.weights, args.device, config)
+
+    command = shlex.join(["python", "-m", "perch_warp", *sys.argv[1:]])
+    try:
+        summary = evaluate(
+            args.dataset, args.out, make_estimator=make_estimator, space_fn=space_fn, split=args.split,
+            scenes=scenes, objects=objects, max_images=args.max_images, models_dir=args.models,
+            table_source=args.table_source, options=options, restart=args.restart, plots=not args.no_plots,
+            gallery=args.gallery, command=command,
+        )
+    except KeyboardInterrupt:
+        print(f"\ninterrupted: finished targets are saved in {args.out / RESULTS_FILE}; "
+              "run the same command again to continue", file=sys.stderr)
+        return 130
+    print(summary["table_text"])
+    print(f"wrote {', '.join(summary['outputs'])} in {args.out}")
+    return 0

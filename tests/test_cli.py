@@ -1,0 +1,108 @@
+"""The command line: a real run on a scene written to disk, and one-line errors for bad input."""
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from perch_warp.cli import main
+from perch_warp.demo import demo_scene, write_scene
+
+
+@pytest.fixture(scope="module")
+def scene_dir(tmp_path_factory):
+    d = tmp_path_factory.mktemp("scene")
+    sc = demo_scene(seed=2)
+    write_scene(sc, d)
+    return d, sc
+
+
+def _args(d, *extra, image=None, camera=None, mesh=None):
+    return [
+        str(image or d / "rgb" / "000001.png"),
+        "--mesh",
+        str(mesh or d / "models" / "obj_000001.obj"),
+        "--camera",
+        str(camera or d / "scene_camera.json"),
+        "--device",
+        "cpu",
+        "--quiet",
+        *extra,
+    ]
+
+
+def _search_around(sc):
+    gx, gy, _ = sc.truth_xy_yaw
+    x, y = round(gx, 2) + 0.01, round(gy, 2) - 0.01
+    return ["--x-range", f"{x - 0.03}", f"{x + 0.03}", "--y-range", f"{y - 0.03}", f"{y + 0.03}", "--yaw-step", "30"]
+
+
+def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, capsys):
+    d, sc = scene_dir
+    out, png = tmp_path / "r.json", tmp_path / "o.png"
+    args = _args(d, *_search_around(sc), "--weights", "caffe", "--out", str(out), "--overlay", str(png))
+    args += ["--truth", str(d / "scene_gt.json"), "--obj-id", "1"]
+    assert main(args) == 0
+    res = json.loads(out.read_text())
+    gx, gy, _ = sc.truth_xy_yaw
+    assert abs(res["pose"]["x_m"] - gx) <= 0.0101 and abs(res["pose"]["y_m"] - gy) <= 0.0101
+    assert res["truth"]["adds_m"] < 0.02 and len(res["top_k"]) == 5
+    assert set(res["timings_s"]) >= {"render", "features_score", "rarity", "reduction", "total"}
+    assert Image.open(png).size[0] == sc.camera.width
+    assert "pose: x =" in capsys.readouterr().out
+
+
+def _error(capsys, args) -> str:
+    code = main(args)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 1, err
+    assert len(err) == 1 and err[0].startswith("perch_warp: error: "), err
+    return err[0]
+
+
+def test_bad_inputs_give_one_line_errors(scene_dir, random_weights, tmp_path, capsys):
+    d, sc = scene_dir
+    np.savez(
+        tmp_path / "w.npz",
+        weight=random_weights.weight,
+        bias=random_weights.bias,
+        mean=random_weights.mean,
+        std=random_weights.std,
+    )
+    w = ["--weights", str(tmp_path / "w.npz")]
+    search = _search_around(sc)
+
+    assert "image not found" in _error(capsys, _args(d, *w, image=tmp_path / "nope.png"))
+    (tmp_path / "junk.png").write_bytes(b"not a png")
+    assert "cannot read image" in _error(capsys, _args(d, *w, image=tmp_path / "junk.png"))
+    Image.fromarray(sc.image[..., 0]).save(tmp_path / "grey.png")
+    assert "not RGB" in _error(capsys, _args(d, *w, image=tmp_path / "grey.png"))
+    Image.fromarray(sc.image[:100, :100]).save(tmp_path / "small.png")
+    assert "outside a 100x100 image" in _error(capsys, _args(d, *w, image=tmp_path / "small.png"))
+
+    cam = json.loads((d / "scene_camera.json").read_text())
+    bad = json.loads(json.dumps(cam))
+    bad["1"]["cam_K"][0] = float("nan")
+    (tmp_path / "nan.json").write_text(json.dumps(bad))
+    assert "finite" in _error(capsys, _args(d, *w, camera=tmp_path / "nan.json"))
+    bad = json.loads(json.dumps(cam))
+    # The same plane seen from below: table frame turned 180 deg about its x axis.
+    bad["1"]["cam_R_w2c"] = (np.reshape(bad["1"]["cam_R_w2c"], (3, 3)) @ np.diag([1, -1, -1])).reshape(-1).tolist()
+    (tmp_path / "behind.json").write_text(json.dumps(bad))
+    assert "behind the camera" in _error(capsys, _args(d, *w, camera=tmp_path / "behind.json"))
+    del cam["1"]["cam_R_w2c"]
+    (tmp_path / "notable.json").write_text(json.dumps(cam))
+    assert "no table frame" in _error(capsys, _args(d, *w, camera=tmp_path / "notable.json"))
+
+    (tmp_path / "flat.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    assert "no faces" in _error(capsys, _args(d, *w, mesh=tmp_path / "flat.obj"))
+    (tmp_path / "plain.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
+    assert "no texture" in _error(capsys, _args(d, *w, mesh=tmp_path / "plain.obj"))
+
+    assert "alpha" in _error(capsys, _args(d, *w, *search, "--alpha", "0"))
+    assert "alpha" in _error(capsys, _args(d, *w, *search, "--alpha", "1.5"))
+    assert "empty" in _error(capsys, _args(d, *w, "--x-range", "0.1", "-0.1", "--y-range", "0", "0.1"))
+    far = ["--x-range", "5", "5.1", "--y-range", "5", "5.1"]
+    assert "outside the image" in _error(capsys, _args(d, *w, *far))
+    assert "unknown --weights" in _error(capsys, _args(d, "--weights", "vgg"))

@@ -1,0 +1,186 @@
+"""The eval loop with a fake estimator: metrics against an independent computation, resume, outputs."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+import math
+
+import numpy as np
+import pytest
+from test_bop import write_tiny_dataset
+
+from perch_warp import bop
+from perch_warp import evaluate as ev
+from perch_warp.errors import PerchError
+from perch_warp.mesh import load_mesh
+from perch_warp.table import decompose_on_table, model_to_camera
+
+# Fake estimates: the ground truth moved on the table by (dx, 0) metres and turned by dyaw, per target.
+OFFSETS = {
+    (1, 1, 0): (0.0, 0.0),
+    (1, 1, 1): (0.015, 0.4),
+    (1, 1, 3): (0.05, 0.0),
+    (1, 2, 0): (0.004, 1.0),
+    (1, 2, 1): (0.12, 0.0),
+}
+
+
+class FakeEstimator:
+    def __init__(self, fail_after: int | None = None):
+        self.calls = []
+        self.fail_after = fail_after
+
+    def __call__(self, target, image, camera, table, resting, space):
+        if self.fail_after is not None and len(self.calls) >= self.fail_after:
+            raise KeyboardInterrupt
+        assert image.shape == (camera.height, camera.width, 3) and image.dtype == np.uint8
+        self.calls.append(target.key)
+        _, x, y, yaw = decompose_on_table(table, target.R_gt, target.t_gt_m)
+        dx, dyaw = OFFSETS[target.key]
+        R, t = model_to_camera(table, resting, x + dx, y, yaw + dyaw)
+        return ev.Estimate(R, t, 1.0 - dx, {"fake": True})
+
+
+def run_eval(root, out, est, **kw):
+    kw.setdefault("plots", False)
+    return ev.evaluate(
+        root, out, make_estimator=lambda paths: est, space_fn=ev.visible_table_space(0.02), progress=False, **kw
+    )
+
+
+def brute_adds(R_e, t_e, R_g, t_g, pts):
+    pe = pts @ R_e.T + t_e
+    pg = pts @ R_g.T + t_g
+    return np.linalg.norm(pg[:, None] - pe[None], axis=2).min(axis=1).mean()
+
+
+def test_metrics_agree_with_an_independent_computation(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    est = FakeEstimator()
+    s = run_eval(root, tmp_path / "out", est)
+    assert sorted(est.calls) == sorted(OFFSETS)
+    assert s["skipped_no_model"] == {"7": 1} and s["n_targets"] == 5
+    # Independent ADD-S: brute-force nearest neighbours on the mesh vertices (few, so not subsampled).
+    ds = bop.open_dataset(root)
+    gts = bop.load_scene_gt(ds.scene_dir(1) / "scene_gt.json")
+    results = bop.read_results(tmp_path / "out" / "results.csv")
+    rows_by_obj: dict[int, list] = {}
+    for r in results:
+        rows_by_obj.setdefault((r.im_id, r.obj_id), []).append(r)
+    errors: dict[int, list[float]] = {1: [], 2: []}
+    for _scene, im, inst in OFFSETS:
+        g = gts[im][inst]
+        k = [i for i, h in enumerate(gts[im]) if h.obj_id == g.obj_id].index(inst)
+        r = rows_by_obj[(im, g.obj_id)][k]
+        pts = load_mesh(ds.model_path(g.obj_id)).vertices_m
+        errors[g.obj_id].append(brute_adds(r.R, r.t_mm / 1000, g.R_m2c, g.t_m2c_m, pts))
+    per_target = list(csv.DictReader(open(tmp_path / "out" / "per_target.csv")))
+    assert len(per_target) == 5
+    for row in per_target:
+        dx, dyaw = OFFSETS[(int(row["scene_id"]), int(row["im_id"]), int(row["inst"]))]
+        assert float(row["te_mm"]) == pytest.approx(1000 * dx, abs=1e-4)
+        assert float(row["yaw_err_deg"]) == pytest.approx(math.degrees(dyaw), abs=1e-4)
+        assert float(row["add_mm"]) >= float(row["adds_mm"]) - 1e-9
+    for obj_id, e in errors.items():
+        e = np.array(e)
+        auc = 100 * np.mean(np.clip(1 - e / 0.1, 0, 1))  # closed form of the area, see pose_error.auc
+        m = s["objects"][str(obj_id)]
+        assert m["n"] == len(e)
+        assert m["auc"] == pytest.approx(auc, abs=1e-6)
+        assert m["adds_below_2cm_pct"] == pytest.approx(100 * np.mean(e < 0.02))
+    all_e = np.concatenate([np.array(v) for v in errors.values()])
+    assert s["pooled"]["auc"] == pytest.approx(100 * np.mean(np.clip(1 - all_e / 0.1, 0, 1)), abs=1e-6)
+    # Thesis Table 4.1's "All Objects" is the mean over objects.
+    assert s["all_objects"]["auc"] == pytest.approx((s["objects"]["1"]["auc"] + s["objects"]["2"]["auc"]) / 2)
+    # Occlusion bins from visib_fract: 1 - 0.25 = 0.75 -> bin 7.
+    assert s["occlusion"]["all"]["n"][7] == 1 and sum(s["occlusion"]["all"]["n"]) == 5
+    saved = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert saved["objects"]["1"]["auc"] == pytest.approx(s["objects"]["1"]["auc"])
+    assert "All Objects" in (tmp_path / "out" / "table.txt").read_text()
+
+
+def test_results_are_bop_format_with_one_time_per_image(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    run_eval(root, tmp_path / "out", FakeEstimator())
+    rows = bop.read_results(tmp_path / "out" / "results.csv")
+    assert [(r.im_id, r.obj_id) for r in rows] == [(1, 1), (1, 1), (1, 2), (2, 2), (2, 1)]
+    journal = [json.loads(line) for line in (tmp_path / "out" / "targets.jsonl").read_text().splitlines()]
+    for im_id in (1, 2):
+        times = {r.time_s for r in rows if r.im_id == im_id}
+        assert len(times) == 1
+        assert times.pop() == pytest.approx(sum(j["time_s"] for j in journal if j["im_id"] == im_id))
+
+
+def test_interrupted_run_resumes_where_it_stopped(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    full = run_eval(root, tmp_path / "full", FakeEstimator())
+    first = FakeEstimator(fail_after=2)
+    with pytest.raises(KeyboardInterrupt):
+        run_eval(root, tmp_path / "out", first)
+    assert len(bop.read_results(tmp_path / "out" / "results.csv")) == 2  # saved as they finished
+    second = FakeEstimator()
+    resumed = run_eval(root, tmp_path / "out", second)
+    assert len(second.calls) == 3 and not set(second.calls) & set(first.calls)
+    assert resumed["objects"] == full["objects"] | {
+        k: {**v, "mean_time_s": resumed["objects"][k]["mean_time_s"]} for k, v in full["objects"].items()
+    }
+    a = bop.read_results(tmp_path / "out" / "results.csv")
+    b = bop.read_results(tmp_path / "full" / "results.csv")
+    for ra, rb in zip(a, b, strict=True):
+        np.testing.assert_array_equal(ra.R, rb.R)
+        np.testing.assert_array_equal(ra.t_mm, rb.t_mm)
+    # Without the journal, results.csv alone is enough to skip every target.
+    (tmp_path / "out" / "targets.jsonl").unlink()
+    third = FakeEstimator()
+    again = run_eval(root, tmp_path / "out", third)
+    assert third.calls == [] and again["pooled"]["auc"] == pytest.approx(full["pooled"]["auc"])
+
+
+def test_changed_search_options_refuse_to_mix_unless_restarted(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    run_eval(root, tmp_path / "out", FakeEstimator(), options={"xy_step": 0.01})
+    with pytest.raises(PerchError, match=r"other settings .*xy_step.*--restart"):
+        run_eval(root, tmp_path / "out", FakeEstimator(), options={"xy_step": 0.02})
+    est = FakeEstimator()
+    run_eval(root, tmp_path / "out", est, options={"xy_step": 0.02}, restart=True)
+    assert len(est.calls) == 5
+
+
+def test_object_and_image_selection(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    est = FakeEstimator()
+    s = run_eval(root, tmp_path / "out", est, objects=[2], max_images=1)
+    assert est.calls == [(1, 1, 3)] and list(s["objects"]) == ["2"] and s["skipped_no_model"] == {}
+
+
+def test_plots_and_gallery_are_written(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    s = run_eval(root, tmp_path / "out", FakeEstimator(), plots=True, gallery=2)
+    for name in ("adds_curve.png", "occlusion.png", "errors.png", "gallery.png"):
+        assert (tmp_path / "out" / name).stat().st_size > 1000, name
+        assert name in s["outputs"]
+
+
+def test_no_occlusion_plot_without_scene_gt_info(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds", with_info=False)
+    s = run_eval(root, tmp_path / "out", FakeEstimator(), plots=True, gallery=0)
+    assert "occlusion" not in s and not (tmp_path / "out" / "occlusion.png").exists()
+
+
+def test_command_line_wiring(tmp_path, monkeypatch, capsys):
+    root = write_tiny_dataset(tmp_path / "ds")
+    est = FakeEstimator()
+    monkeypatch.setattr(ev, "EngineEstimator", lambda *a, **k: est)
+    p = argparse.ArgumentParser()
+    ev.add_arguments(p)
+    args = p.parse_args(
+        ["--dataset", str(root), "--out", str(tmp_path / "out"), "--objects", "1,2", "--no-plots", "--xy-step", "0.02"]
+    )
+    assert ev.run(args) == 0
+    out = capsys.readouterr().out
+    assert "001 box" in out and "All Objects (mean)" in out and "Mean Runtime" in out
+    assert len(est.calls) == 5
+    config = json.loads((tmp_path / "out" / "eval_config.json").read_text())
+    assert config["options"]["xy_step"] == 0.02 and "out" not in config["options"]

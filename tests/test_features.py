@@ -1,0 +1,159 @@
+"""Kernel #2 against independent references: torch's conv2d and a NumPy scorer."""
+
+import numpy as np
+import pytest
+import torch
+import warp as wp
+from perch_warp.kernels.features import NOT_ON_MASK
+
+from perch_warp.errors import PerchError
+from perch_warp.features import PREPROCESSING, FeatureWeights, load_npz
+from perch_warp.render import RenderedBatch
+from perch_warp.score import FeatureScorer, grid_boxes, grid_shape
+
+
+def _torch_features(image_u8: np.ndarray, w: FeatureWeights, stride: int) -> np.ndarray:
+    """The network's own recipe: normalise, then an unpadded strided conv. (rows, cols, C)."""
+    x = torch.from_numpy(image_u8.astype(np.float64) / 255.0).permute(2, 0, 1)[None]
+    mean = torch.tensor(w.mean, dtype=torch.float64)[None, :, None, None]
+    std = torch.tensor(w.std, dtype=torch.float64)[None, :, None, None]
+    y = torch.nn.functional.conv2d(
+        (x - mean) / std, torch.from_numpy(w.weight).double(), torch.from_numpy(w.bias).double(), stride=stride
+    )
+    return y[0].permute(1, 2, 0).numpy()
+
+
+@pytest.mark.parametrize("stride", [1, 4])
+def test_photo_features_equal_torch_conv(random_weights, stride):
+    img = np.random.default_rng(1).integers(0, 256, (37, 45, 3), dtype=np.uint8)
+    sc = FeatureScorer(random_weights, "cpu", stride)
+    got = sc.observed_features(sc.image_to_device(img)).numpy()
+    ref = _torch_features(img, random_weights, stride)
+    assert got.shape == ref.shape == (*grid_shape(45, 37, 11, stride), 96)
+    assert np.abs(got - ref).max() < 1e-3 * np.abs(ref).max()
+
+
+def test_caffe_preprocessing_is_rgb255_minus_mean(caffe_weights):
+    img = np.random.default_rng(2).integers(0, 256, (23, 23, 3), dtype=np.uint8)
+    sc = FeatureScorer(caffe_weights, "cpu", 4)
+    got = sc.observed_features(sc.image_to_device(img)).numpy()
+    x = img.astype(np.float64) - np.array([123.68, 116.78, 103.94])
+    # Caffe conv1 at the first window: sum over (channel, y, x) of W * (RGB - mean), plus bias.
+    ref = (caffe_weights.weight.astype(np.float64) * x[:11, :11].transpose(2, 0, 1)[None]).sum(
+        (1, 2, 3)
+    ) + caffe_weights.bias
+    assert np.allclose(got[0, 0], ref, rtol=1e-4, atol=1e-2)
+
+
+def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, stride, rarity):
+    """Reference: composite each window, convolve in float64, cosine with the photo's feature, times rarity."""
+    norm = (img.astype(np.float64) / 255.0 - np.array(w.mean)) / np.array(w.std)
+    W = w.weight.astype(np.float64)
+    half = 5
+    out = []
+    for c in range(len(boxes)):
+        x0, y0, bw, bh = boxes[c]
+        gx0, gy0, gw, gh = gboxes[c]
+        crgb = rgb[pix_off[c] : pix_off[c + 1]].reshape(bh, bw, 3)
+        cmask = mask[pix_off[c] : pix_off[c + 1]].reshape(bh, bw).astype(bool)
+        comp = img.astype(np.float64) / 255.0
+        comp = comp.copy()
+        region = comp[y0 : y0 + bh, x0 : x0 + bw]
+        region[cmask] = crgb[cmask]
+        compn = (comp - np.array(w.mean)) / np.array(w.std)
+        for gy in range(gy0, gy0 + gh):
+            for gx in range(gx0, gx0 + gw):
+                u, v = half + stride * gx, half + stride * gy
+                inside = x0 <= u < x0 + bw and y0 <= v < y0 + bh
+                if not (inside and cmask[v - y0, u - x0]):
+                    out.append(NOT_ON_MASK)
+                    continue
+                f = (W * compn[v - half : v + half + 1, u - half : u + half + 1].transpose(2, 0, 1)[None]).sum(
+                    (1, 2, 3)
+                )
+                f += w.bias
+                fo = (W * norm[v - half : v + half + 1, u - half : u + half + 1].transpose(2, 0, 1)[None]).sum(
+                    (1, 2, 3)
+                )
+                fo += w.bias
+                out.append(f @ fo / (np.linalg.norm(f) * np.linalg.norm(fo)) * rarity[gy, gx])
+    return np.array(out)
+
+
+def test_candidate_scores_equal_numpy_reference(random_weights):
+    rng = np.random.default_rng(3)
+    H, W_, stride = 40, 52, 3
+    img = rng.integers(0, 256, (H, W_, 3), dtype=np.uint8)
+    boxes = np.array([[4, 6, 20, 15], [30, 0, 22, 40], [0, 25, 10, 15]], np.int32)
+    sizes = boxes[:, 2] * boxes[:, 3]
+    pix_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
+    rgb = rng.random((pix_off[-1], 3)).astype(np.float32)
+    mask = (rng.random(pix_off[-1]) < 0.7).astype(np.uint8)
+    rows, cols = grid_shape(W_, H, 11, stride)
+    gboxes = grid_boxes(boxes, rows, cols, 11, stride)
+    rarity = rng.random((rows, cols)).astype(np.float32)
+
+    sc = FeatureScorer(random_weights, "cpu", stride)
+    image = sc.image_to_device(img)
+    obs = sc.observed_features(image)
+    norms = np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32)
+    batch = RenderedBatch(
+        wp.array(rgb, dtype=wp.vec3, device="cpu"),
+        wp.array(mask, dtype=wp.uint8, device="cpu"),
+        wp.array(boxes, dtype=wp.vec4i, device="cpu"),
+        wp.array(pix_off, dtype=wp.int32, device="cpu"),
+        len(boxes),
+    )
+    vals, pt_off = sc.score_points(
+        image, batch, gboxes, obs, wp.array(norms, device="cpu"), wp.array(rarity, device="cpu")
+    )
+    got = vals.numpy()
+    ref = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity)
+    assert got.shape == ref.shape and pt_off[-1] == len(ref)
+    off = ref == NOT_ON_MASK
+    assert np.array_equal(got == NOT_ON_MASK, off) and 0 < off.sum() < len(ref)
+    assert np.abs(got[~off] - ref[~off]).max() < 1e-4
+
+
+def test_grid_boxes_hold_exactly_the_centres_inside():
+    rng = np.random.default_rng(4)
+    rows, cols, stride = 20, 30, 4
+    for _ in range(50):
+        x0, y0 = rng.integers(0, 120, 2)
+        w, h = rng.integers(1, 40, 2)
+        g = grid_boxes(np.array([[x0, y0, w, h]]), rows, cols, 11, stride)[0]
+        want = [
+            (gx, gy)
+            for gy in range(rows)
+            for gx in range(cols)
+            if x0 <= 5 + stride * gx < x0 + w and y0 <= 5 + stride * gy < y0 + h
+        ]
+        got = [(gx, gy) for gy in range(g[1], g[1] + g[3]) for gx in range(g[0], g[0] + g[2])]
+        assert sorted(got) == sorted(want)
+
+
+def test_folded_weights_act_on_unit_rgb():
+    rng = np.random.default_rng(5)
+    w = FeatureWeights(
+        rng.normal(size=(4, 3, 3, 3)).astype(np.float32),
+        rng.normal(size=4).astype(np.float32),
+        *PREPROCESSING["torchvision"],
+        "t",
+    )
+    Wt, b = w.folded()
+    x = rng.random((3, 3, 3))  # (y, x, ch) in [0, 1]
+    ref = (w.weight * ((x - np.array(w.mean)) / np.array(w.std)).transpose(2, 0, 1)[None]).sum((1, 2, 3)) + w.bias
+    assert np.allclose(x.reshape(-1) @ Wt + b, ref, atol=1e-4)
+
+
+def test_npz_without_preprocessing_is_refused(tmp_path):
+    p = tmp_path / "w.npz"
+    np.savez(p, weight=np.zeros((2, 3, 3, 3), np.float32), bias=np.zeros(2, np.float32))
+    with pytest.raises(PerchError, match="preprocessing"):
+        load_npz(p)
+    np.savez(p, weight=np.zeros((2, 3, 3, 3), np.float32))
+    with pytest.raises(PerchError, match="'bias'"):
+        load_npz(p)
+    np.savez(p, weight=np.zeros((2, 3, 4, 4), np.float32), bias=np.zeros(2, np.float32), preprocessing="caffe")
+    with pytest.raises(PerchError, match="odd k"):
+        load_npz(p)

@@ -1,0 +1,42 @@
+import numpy as np
+import pytest
+import trimesh
+
+from perch_warp.demo import label_texture, textured_box, write_obj
+from perch_warp.errors import PerchError
+from perch_warp.mesh import load_mesh
+
+
+def test_textured_obj_round_trip_and_unit_detection(tmp_path):
+    box = textured_box((0.1, 0.06, 0.04), label_texture(np.random.default_rng(0), 96))
+    write_obj(box, tmp_path / "box.obj")
+    m = load_mesh(tmp_path / "box.obj")
+    assert m.units_note.startswith("m ")
+    assert np.allclose(m.vertices_m, box.vertices_m, atol=1e-6)
+    assert np.allclose(m.uv, box.uv, atol=1e-6)
+    assert np.allclose(m.texture, box.texture, atol=1 / 255)
+
+    mm = type(box)(box.vertices_m * 1000, box.faces, box.uv, box.texture, None, "", "")
+    write_obj(mm, tmp_path / "box_mm.obj")
+    m2 = load_mesh(tmp_path / "box_mm.obj")
+    assert m2.units_note.startswith("mm ") and np.allclose(m2.vertices_m, box.vertices_m, atol=1e-6)
+    assert np.allclose(load_mesh(tmp_path / "box_mm.obj", units="m").vertices_m, box.vertices_m * 1000, atol=1e-3)
+
+
+def test_ply_with_vertex_colours(tmp_path):
+    m = trimesh.creation.box((0.05, 0.05, 0.05))
+    m.visual.vertex_colors = np.tile([200, 100, 50, 255], (len(m.vertices), 1))
+    m.export(tmp_path / "c.ply")
+    got = load_mesh(tmp_path / "c.ply")
+    assert got.texture is None and np.allclose(got.vertex_colors, [200 / 255, 100 / 255, 50 / 255])
+
+
+def test_meshes_without_faces_or_appearance_are_refused(tmp_path):
+    (tmp_path / "pts.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
+    with pytest.raises(PerchError, match="no faces"):
+        load_mesh(tmp_path / "pts.obj")
+    (tmp_path / "plain.obj").write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\n")
+    with pytest.raises(PerchError, match="no texture and no vertex colours"):
+        load_mesh(tmp_path / "plain.obj")
+    with pytest.raises(PerchError, match="not found"):
+        load_mesh(tmp_path / "missing.obj")
