@@ -44,16 +44,25 @@ class ObjectMesh:
             return self.vertices_m
 
 
-def _texture_image(visual) -> np.ndarray | None:
+def _texture_image(visual, path: Path) -> np.ndarray | None:
     mat = getattr(visual, "material", None)
     if mat is None:
         return None
+    if path.suffix.lower() == ".ply" and b"TextureFile" not in path.read_bytes()[:65536]:
+        # trimesh puts a 2x2 placeholder image on PLY UVs without a texture file.
+        raise PerchError(
+            f"mesh {path} has UVs but no texture image: name it in a 'comment TextureFile NAME.png' header line"
+        )
     img = getattr(mat, "image", None)
+    factor = np.ones(3, np.float32)
     if img is None:
         img = getattr(mat, "baseColorTexture", None)
+        bcf = getattr(mat, "baseColorFactor", None)
+        if bcf is not None:  # glTF: the factor multiplies the texture
+            factor = np.asarray(bcf, np.float32)[:3] / (255.0 if np.asarray(bcf).dtype.kind in "ui" else 1.0)
     if img is None:
         return None
-    arr = np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0
+    arr = np.asarray(img.convert("RGB"), dtype=np.float32) / 255.0 * factor
     return np.ascontiguousarray(arr[::-1])
 
 
@@ -94,7 +103,7 @@ def load_mesh(path: str | Path, units: str = "auto") -> ObjectMesh:
     uv = texture = colors = None
     visual = loaded.visual
     if getattr(visual, "kind", None) == "texture" and getattr(visual, "uv", None) is not None:
-        texture = _texture_image(visual)
+        texture = _texture_image(visual, path)
         if texture is not None:
             uv = np.asarray(visual.uv, dtype=np.float32)[:, :2]
             if len(uv) != len(V):

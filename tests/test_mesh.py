@@ -40,3 +40,31 @@ def test_meshes_without_faces_or_appearance_are_refused(tmp_path):
         load_mesh(tmp_path / "plain.obj")
     with pytest.raises(PerchError, match="not found"):
         load_mesh(tmp_path / "missing.obj")
+
+
+def _textured_trimesh(tmp_path):
+    from PIL import Image
+
+    box = textured_box((0.1, 0.06, 0.04), label_texture(np.random.default_rng(0), 96))
+    img = Image.fromarray((box.texture[::-1] * 255).round().astype(np.uint8))
+    img.save(tmp_path / "tex.png")
+    mat = trimesh.visual.material.PBRMaterial(baseColorTexture=img, baseColorFactor=[1.0, 1.0, 1.0, 1.0])
+    tm = trimesh.Trimesh(
+        box.vertices_m, box.faces, visual=trimesh.visual.TextureVisuals(uv=box.uv, material=mat), process=False
+    )
+    return box, tm
+
+
+def test_glb_and_ply_with_uvs(tmp_path):
+    box, tm = _textured_trimesh(tmp_path)
+    tm.export(tmp_path / "b.glb")
+    tm.export(tmp_path / "b.ply")
+    ply = (tmp_path / "b.ply").read_bytes()
+    (tmp_path / "t.ply").write_bytes(ply.replace(b"end_header", b"comment TextureFile tex.png\nend_header", 1))
+    for name in ("b.glb", "t.ply"):
+        m = load_mesh(tmp_path / name)
+        assert np.allclose(m.uv, box.uv, atol=1e-4), name
+        assert np.allclose(m.texture, box.texture, atol=1.5 / 255), name
+    # UVs without a texture file would silently shade with a placeholder: refused instead.
+    with pytest.raises(PerchError, match="TextureFile"):
+        load_mesh(tmp_path / "b.ply")
