@@ -47,6 +47,15 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--seed", type=int, default=0, help="k-means seed (default: 0)")
     g.add_argument("--top-k", type=int, default=5, help="how many best poses to report (default: 5)")
     g.add_argument("--relu", action="store_true", help="apply AlexNet's ReLU after conv1 (default: raw conv1)")
+    g.add_argument(
+        "--search",
+        default="exhaustive",
+        choices=["exhaustive", "coarse-to-fine"],
+        help="score every grid pose, or a coarse lattice refined around the best (default: exhaustive)",
+    )
+    g.add_argument("--coarse-xy", type=float, default=0.04, help="coarse-to-fine: first lattice's x/y step, m")
+    g.add_argument("--coarse-yaw", type=float, default=20.0, help="coarse-to-fine: first lattice's yaw step, deg")
+    g.add_argument("--beam", type=int, default=16, help="coarse-to-fine: candidates refined per level (default 16)")
     g.add_argument("--device", default=None, help="Warp device: cpu | cuda:0 (default: a GPU if Warp sees one)")
     g.add_argument(
         "--batch-pixels", type=int, default=None, help="rendered pixels per batch (default: sized to the device)"
@@ -82,6 +91,10 @@ def engine_config_from_args(args: argparse.Namespace):
         top_k=args.top_k,
         relu=args.relu,
         batch_pixels=args.batch_pixels,
+        search=args.search,
+        coarse_xy_m=args.coarse_xy,
+        coarse_yaw_rad=math.radians(args.coarse_yaw),
+        beam=args.beam,
     )
 
 

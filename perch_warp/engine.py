@@ -20,7 +20,7 @@ from .features import FeatureWeights
 from .image import check_rgb
 from .mesh import ObjectMesh
 from .rarity import rarity as rarity_fn
-from .render import MeshRenderer, project_boxes
+from .render import MIN_DEPTH_M, MeshRenderer, project_boxes
 from .result import Candidate, Result
 from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean
 from .search_space import SearchSpace
@@ -38,6 +38,11 @@ class EngineConfig:
     top_k: int = 5
     relu: bool = False
     batch_pixels: int | None = None  # rendered pixels per batch; None: sized to the device
+    search: str = "exhaustive"  # or "coarse-to-fine" (see Engine._coarse_to_fine)
+    coarse_xy_m: float = 0.04  # coarse-to-fine: the first lattice's x/y step
+    coarse_yaw_rad: float = math.radians(20.0)  # coarse-to-fine: the first lattice's yaw step
+    beam: int = 16  # coarse-to-fine: how many best candidates each finer level refines
+    max_polish: int = 10  # coarse-to-fine: hill-climbing rounds on the final grid
 
     def __post_init__(self) -> None:
         if not (0.0 < self.alpha <= 1.0) or not math.isfinite(self.alpha):
@@ -48,6 +53,22 @@ class EngineConfig:
             raise PerchError(f"clusters must be at least 1, got {self.clusters}")
         if self.top_k < 1:
             raise PerchError(f"top_k must be at least 1, got {self.top_k}")
+        if self.search not in ("exhaustive", "coarse-to-fine"):
+            raise PerchError(f"search must be exhaustive or coarse-to-fine, got {self.search!r}")
+        if self.beam < 1 or self.coarse_xy_m <= 0 or self.coarse_yaw_rad <= 0:
+            raise PerchError("coarse-to-fine needs beam >= 1 and positive coarse steps")
+
+
+@dataclass
+class _Photo:
+    """One photo on the device: image, feature map, feature norms and rarity on the feature grid."""
+
+    image: wp.array
+    obs: wp.array
+    norm: wp.array
+    rarity: wp.array
+    rows: int
+    cols: int
 
 
 def default_device() -> str:
@@ -107,88 +128,39 @@ class Engine:
     ) -> Result:
         """Best (x, y, yaw) of the object in the photo; see the module doc for the stages."""
         cfg = self.config
-        image_rgb = check_rgb(image_rgb)
-        if image_rgb.shape[:2] != (camera.height, camera.width):
-            raise PerchError(
-                f"image is {image_rgb.shape[1]}x{image_rgb.shape[0]} but the camera is {camera.width}x{camera.height}"
-            )
-        ks = self.weights.kernel_size
-        rows, cols = grid_shape(camera.width, camera.height, ks, cfg.stride)
-        if rows < 1 or cols < 1:
-            raise PerchError(f"image {camera.width}x{camera.height} is smaller than the {ks}x{ks} feature window")
         timings: dict[str, float] = {}
-
-        def lap(stage: str, t0: float) -> float:
-            wp.synchronize_device(self.device)
-            t1 = time.perf_counter()
-            timings[stage] = timings.get(stage, 0.0) + (t1 - t0)
-            return t1
-
-        t = time.perf_counter()
-        image = self.scorer.image_to_device(image_rgb)
-        obs = self.scorer.observed_features(image)
-        t = lap("photo_features", t)
-        feats = obs.numpy().reshape(rows * cols, -1)
-        rar = rarity_fn(feats, cfg.clusters, cfg.seed).reshape(rows, cols)
-        norms = np.linalg.norm(feats.astype(np.float64), axis=1).reshape(rows, cols).astype(np.float32)
-        with wp.ScopedDevice(self.device):
-            rar_wp = wp.array(rar, dtype=float)
-            norm_wp = wp.array(norms, dtype=float)
-        t = lap("rarity", t)
-
-        x, y, yaw = space.candidates()
-        R, tr = model_to_camera(table, resting, x, y, yaw)
-        boxes = project_boxes(camera, self.hull_m, R, tr)
-        if np.any(boxes[:, 2] < 0):
-            n_bad = int((boxes[:, 2] < 0).sum())
-            raise PerchError(
-                f"{n_bad} of {len(boxes)} candidate poses are behind or within {0.02} m of the camera: "
-                "check the table frame and the search ranges"
-            )
-        gboxes = grid_boxes(boxes, rows, cols, ks, cfg.stride)
-        live = np.flatnonzero(gboxes[:, 2] * gboxes[:, 3] > 0)
-        if len(live) == 0:
-            raise PerchError(f"the search grid projects outside the image ({space.describe()})")
-        t = lap("candidates", t)
-
-        scores = np.full(len(x), -np.inf)
-        n_pts = np.zeros(len(x), dtype=np.int64)
-        budget = cfg.batch_pixels or _batch_pixels(self.device)
-        sizes = boxes[live, 2].astype(np.int64) * boxes[live, 3]
-        batches = _split_by_budget(sizes, budget)
+        self._n_batches = 0
+        photo = self._photo(image_rgb, camera, timings)
         bar = None
         if progress:
             from tqdm import tqdm
 
-            bar = tqdm(total=len(live), unit="pose", desc=f"search on {self.device}", leave=False)
-        for lo, hi in batches:
-            idx = live[lo:hi]
-            batch = self.renderer.render(camera, R[idx], tr[idx], boxes[idx])
-            t = lap("render", t)
-            vals, pt_off = self.scorer.score_points(image, batch, gboxes[idx], obs, norm_wp, rar_wp)
-            t = lap("features_score", t)
-            vals_np = vals.numpy()
-            t = lap("transfer", t)
-            s, n = top_alpha_mean(vals_np, pt_off, cfg.alpha)
-            scores[idx] = s
-            n_pts[idx] = n
-            t = lap("reduction", t)
+            bar = tqdm(total=0, unit="pose", desc=f"search on {self.device}", leave=False)
+        try:
+            if cfg.search == "exhaustive":
+                x, y, yaw = space.candidates()
+                scores = self._score(photo, camera, table, resting, x, y, yaw, timings, bar)
+                levels: list = []
+            else:
+                x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
+        finally:
             if bar is not None:
-                bar.update(len(idx))
-        if bar is not None:
-            bar.close()
+                bar.close()
+        if not np.isfinite(scores).any():
+            raise PerchError(f"the search grid projects outside the image ({space.describe()})")
 
         # Stable order: ties go to the earlier candidate, so results are reproducible.
         order = np.argsort(-scores, kind="stable")[: cfg.top_k]
+        R, tr = model_to_camera(table, resting, x[order], y[order], yaw[order])
         cands = [
-            Candidate(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i]), pose_matrix(R[i], tr[i]))
-            for i in order
+            Candidate(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i]), pose_matrix(R[n], tr[n]))
+            for n, i in enumerate(order)
         ]
         timings["total"] = sum(timings.values())
         return Result(
             best=cands[0],
             top_k=cands,
-            n_candidates=len(x),
+            n_candidates=len(space),
             n_scored=int(np.isfinite(scores).sum()),
             timings_s=timings,
             device=self.device,
@@ -198,11 +170,164 @@ class Engine:
                 "alpha": cfg.alpha,
                 "clusters": cfg.clusters,
                 "seed": cfg.seed,
+                "search": cfg.search,
                 "search_space": space.describe(),
-                "batches": len(batches),
-                "mean_points_per_candidate": float(n_pts[live].mean()),
+                "evaluated": len(x),
+                "batches": self._n_batches,
+                **({"levels": levels} if levels else {}),
             },
         )
+
+    def _photo(self, image_rgb: np.ndarray, camera: Camera, timings: dict) -> _Photo:
+        """The photo's feature map, norms and rarity, on the device (once per photo)."""
+        cfg = self.config
+        image_rgb = check_rgb(image_rgb)
+        if image_rgb.shape[:2] != (camera.height, camera.width):
+            raise PerchError(
+                f"image is {image_rgb.shape[1]}x{image_rgb.shape[0]} but the camera is {camera.width}x{camera.height}"
+            )
+        ks = self.weights.kernel_size
+        rows, cols = grid_shape(camera.width, camera.height, ks, cfg.stride)
+        if rows < 1 or cols < 1:
+            raise PerchError(f"image {camera.width}x{camera.height} is smaller than the {ks}x{ks} feature window")
+        t = time.perf_counter()
+        image = self.scorer.image_to_device(image_rgb)
+        obs = self.scorer.observed_features(image)
+        t = self._lap(timings, "photo_features", t)
+        feats = obs.numpy().reshape(rows * cols, -1)
+        rar = rarity_fn(feats, cfg.clusters, cfg.seed).reshape(rows, cols)
+        norms = np.linalg.norm(feats.astype(np.float64), axis=1).reshape(rows, cols).astype(np.float32)
+        with wp.ScopedDevice(self.device):
+            photo = _Photo(image, obs, wp.array(norms, dtype=float), wp.array(rar, dtype=float), rows, cols)
+        self._lap(timings, "rarity", t)
+        return photo
+
+    def _lap(self, timings: dict, stage: str, t0: float) -> float:
+        wp.synchronize_device(self.device)
+        t1 = time.perf_counter()
+        timings[stage] = timings.get(stage, 0.0) + (t1 - t0)
+        return t1
+
+    def _score(self, photo, camera, table, resting, x, y, yaw, timings: dict, bar=None) -> np.ndarray:
+        """Score of each candidate (x_m, y_m, yaw_rad arrays); -inf where it shows no feature point."""
+        cfg = self.config
+        ks = self.weights.kernel_size
+        t = time.perf_counter()
+        R, tr = model_to_camera(table, resting, x, y, yaw)
+        boxes = project_boxes(camera, self.hull_m, R, tr)
+        if np.any(boxes[:, 2] < 0):
+            n_bad = int((boxes[:, 2] < 0).sum())
+            raise PerchError(
+                f"{n_bad} of {len(boxes)} candidate poses are behind or within {MIN_DEPTH_M} m of the camera: "
+                "check the table frame and the search ranges"
+            )
+        gboxes = grid_boxes(boxes, photo.rows, photo.cols, ks, cfg.stride)
+        live = np.flatnonzero(gboxes[:, 2] * gboxes[:, 3] > 0)
+        t = self._lap(timings, "candidates", t)
+
+        scores = np.full(len(x), -np.inf)
+        budget = cfg.batch_pixels or _batch_pixels(self.device)
+        sizes = boxes[live, 2].astype(np.int64) * boxes[live, 3]
+        if bar is not None:
+            bar.total += len(live)
+            bar.refresh()
+        for lo, hi in _split_by_budget(sizes, budget):
+            self._n_batches += 1
+            idx = live[lo:hi]
+            batch = self.renderer.render(camera, R[idx], tr[idx], boxes[idx])
+            t = self._lap(timings, "render", t)
+            vals, pt_off = self.scorer.score_points(
+                photo.image, batch, gboxes[idx], photo.obs, photo.norm, photo.rarity
+            )
+            t = self._lap(timings, "features_score", t)
+            vals_np = vals.numpy()
+            t = self._lap(timings, "transfer", t)
+            scores[idx] = top_alpha_mean(vals_np, pt_off, cfg.alpha)[0]
+            t = self._lap(timings, "reduction", t)
+            if bar is not None:
+                bar.update(len(idx))
+        return scores
+
+    def _coarse_to_fine(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
+        """Pyramid search on the space's own grid: a coarse lattice, then around the best `beam`
+        candidates ever finer lattices down to the grid step, then hill-climbing on the grid
+        until the best `beam` stop changing. Every grid point is scored at most once."""
+        cfg = self.config
+        xs, ys, yaws = space.axes()
+        nx, ny, nk = len(xs), len(ys), len(yaws)
+        wrap = space.yaw_range_rad[1] - space.yaw_range_rad[0] >= 2 * math.pi - 1e-9
+        f_xy = max(1, round(cfg.coarse_xy_m / space.xy_step_m))
+        f_yaw = max(1, round(cfg.coarse_yaw_rad / space.yaw_step_rad))
+        steps = [(f_xy, f_yaw)]
+        while steps[-1] != (1, 1):
+            steps.append((max(1, steps[-1][0] // 2), max(1, steps[-1][1] // 2)))
+        memo: dict[int, float] = {}
+
+        def run(ijk: np.ndarray) -> None:
+            i, j, k = ijk.T
+            k = k % nk if wrap else k
+            ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nk)
+            flat = np.unique((i[ok] * ny + j[ok]) * nk + k[ok])
+            flat = np.array([f for f in flat.tolist() if f not in memo], dtype=np.int64)
+            if len(flat) == 0:
+                return
+            ii, rest = np.divmod(flat, ny * nk)
+            jj, kk = np.divmod(rest, nk)
+            sc = self._score(photo, camera, table, resting, xs[ii], ys[jj], yaws[kk], timings, bar)
+            memo.update(zip(flat.tolist(), sc.tolist(), strict=True))
+
+        def best() -> np.ndarray:
+            flat = np.fromiter(memo.keys(), dtype=np.int64, count=len(memo))
+            sc = np.fromiter(memo.values(), dtype=np.float64, count=len(memo))
+            top = flat[np.lexsort((flat, -sc))[: cfg.beam]]
+            ii, rest = np.divmod(top, ny * nk)
+            jj, kk = np.divmod(rest, nk)
+            return np.stack([ii, jj, kk], -1)
+
+        def around(centres: np.ndarray, reach: tuple[int, int], step: tuple[int, int]) -> np.ndarray:
+            dxy = np.arange(-reach[0], reach[0] + 1, step[0])
+            dk = np.arange(-reach[1], reach[1] + 1, step[1])
+            D = np.stack(np.meshgrid(dxy, dxy, dk, indexing="ij"), -1).reshape(-1, 3)
+            return (centres[:, None, :] + D[None]).reshape(-1, 3)
+
+        def lattice(n: int, f: int, closed: bool) -> np.ndarray:
+            a = np.arange(0, n, f)
+            return np.union1d(a, [n - 1]) if closed else a
+
+        li, lj, lk = lattice(nx, f_xy, True), lattice(ny, f_xy, True), lattice(nk, f_yaw, not wrap)
+        run(np.stack(np.meshgrid(li, lj, lk, indexing="ij"), -1).reshape(-1, 3))
+        levels = [
+            {
+                "step_xy_m": f_xy * space.xy_step_m,
+                "step_yaw_deg": math.degrees(f_yaw * space.yaw_step_rad),
+                "evaluated": len(memo),
+            }
+        ]
+        for prev, step in zip(steps, steps[1:], strict=False):
+            n0 = len(memo)
+            run(around(best(), prev, step))
+            levels.append(
+                {
+                    "step_xy_m": step[0] * space.xy_step_m,
+                    "step_yaw_deg": math.degrees(step[1] * space.yaw_step_rad),
+                    "evaluated": len(memo) - n0,
+                }
+            )
+        n0 = len(memo)
+        for _ in range(cfg.max_polish):
+            before = len(memo)
+            run(around(best(), (1, 1), (1, 1)))
+            if len(memo) == before:
+                break
+        levels.append({"polish_evaluated": len(memo) - n0})
+
+        flat = np.fromiter(memo.keys(), dtype=np.int64, count=len(memo))
+        order = np.argsort(flat)
+        flat = flat[order]
+        sc = np.fromiter(memo.values(), dtype=np.float64, count=len(memo))[order]
+        ii, rest = np.divmod(flat, ny * nk)
+        jj, kk = np.divmod(rest, nk)
+        return xs[ii], ys[jj], yaws[kk], sc, levels
 
 
 def _split_by_budget(sizes: np.ndarray, budget: int) -> list[tuple[int, int]]:

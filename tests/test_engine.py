@@ -73,3 +73,15 @@ def test_real_frame_potted_meat_can(shared, caffe_weights):
     space = _space_around(gx, gy, half=0.03, yaw_step_deg=15.0)
     r = Engine(mesh, caffe_weights, "cpu").estimate(image, camera, table, resting, space)
     assert adi(r.T_m2c[:3, :3], r.T_m2c[:3, 3], R_gt, t_gt, mesh.vertices_m) < 0.02
+
+
+def test_coarse_to_fine_scores_a_subset_and_matches_exhaustive_here(scene, caffe_weights):
+    gx, gy, _ = scene.truth_xy_yaw
+    space = _space_around(gx, gy, half=0.06, yaw_step_deg=15.0)
+    args = (scene.image, scene.camera, scene.table, scene.resting, space)
+    ex = Engine(scene.mesh, caffe_weights, "cpu").estimate(*args)
+    cfg = EngineConfig(search="coarse-to-fine", coarse_xy_m=0.04, coarse_yaw_rad=math.radians(45), beam=4)
+    c2f = Engine(scene.mesh, caffe_weights, "cpu", cfg).estimate(*args)
+    assert c2f.info["evaluated"] < len(space) / 3
+    assert (c2f.x_m, c2f.y_m, c2f.yaw_rad) == (ex.x_m, ex.y_m, ex.yaw_rad)
+    assert c2f.score == pytest.approx(ex.score, abs=1e-6)
