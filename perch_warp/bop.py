@@ -179,7 +179,7 @@ class Dataset:
         return None
 
     def object_name(self, obj_id: int) -> str:
-        """"004 sugar box" from models_info's `name` "004_sugar_box", else "obj 3"."""
+        """ "004 sugar box" from models_info's `name` "004_sugar_box", else "obj 3"."""
         name = self.models_info.get(obj_id, {}).get("name")
         return str(name).replace("_", " ") if name else f"obj {obj_id}"
 

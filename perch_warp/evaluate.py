@@ -53,8 +53,21 @@ RESULTS_FILE = "results.csv"
 # Arguments that choose what to evaluate or where to write, not how to search:
 # changing them between runs of one OUTDIR is fine.
 _NOT_SEARCH_OPTIONS = {
-    "out", "restart", "max_images", "scenes", "objects", "gallery", "no_plots", "device", "func", "command",
-    "quiet", "verbose", "progress", "top_k", "batch_pixels",
+    "out",
+    "restart",
+    "max_images",
+    "scenes",
+    "objects",
+    "gallery",
+    "no_plots",
+    "device",
+    "func",
+    "command",
+    "quiet",
+    "verbose",
+    "progress",
+    "top_k",
+    "batch_pixels",
 }
 # Recorded separately in eval_config.json.
 _EVAL_ARGS = {"dataset", "split", "models", "table_source"}
@@ -202,8 +215,9 @@ SpaceFn = Callable[[Camera, Table, RestingPose], object]
 class EngineEstimator:
     """The real search: one `Engine` per object, built on first use (outside the timed call)."""
 
-    def __init__(self, model_paths: dict[int, Path], weights_spec: str = "auto", device: str | None = None,
-                 config=None):
+    def __init__(
+        self, model_paths: dict[int, Path], weights_spec: str = "auto", device: str | None = None, config=None
+    ):
         self.model_paths = model_paths
         self.weights_spec = weights_spec
         self.device = device
@@ -301,9 +315,14 @@ def _load_state(out_dir: Path, selection: Selection) -> tuple[dict, list[bop.Bop
             try:
                 j = json.loads(line)
                 key = (int(j["scene_id"]), int(j["im_id"]), int(j["inst"]))
-                d = Done(int(j["obj_id"]), np.asarray(j["R"], dtype=np.float64).reshape(3, 3),
-                         np.asarray(j["t_mm"], dtype=np.float64).reshape(3) / 1000.0, float(j["score"]),
-                         float(j["time_s"]), j.get("details", {}))
+                d = Done(
+                    int(j["obj_id"]),
+                    np.asarray(j["R"], dtype=np.float64).reshape(3, 3),
+                    np.asarray(j["t_mm"], dtype=np.float64).reshape(3) / 1000.0,
+                    float(j["score"]),
+                    float(j["time_s"]),
+                    j.get("details", {}),
+                )
             except (ValueError, KeyError, TypeError) as e:
                 # A line cut short by an interruption is the only expected damage: skip it, the target reruns.
                 print(f"warning: {journal} line {no} unreadable ({e}); that target will run again", file=sys.stderr)
@@ -322,25 +341,36 @@ def _write_results(out_dir: Path, selection: Selection, done: dict, foreign: lis
             image_time[key[:2]] += d.time_s
     for r in foreign:
         if r.time_s >= 0:
-            image_time[(r.scene_id, r.im_id)] += r.time_s / max(1, sum(
-                1 for f in foreign if (f.scene_id, f.im_id) == (r.scene_id, r.im_id)))
+            image_time[(r.scene_id, r.im_id)] += r.time_s / max(
+                1, sum(1 for f in foreign if (f.scene_id, f.im_id) == (r.scene_id, r.im_id))
+            )
     for key, d in done.items():
         res = bop.BopResult(key[0], key[1], d.obj_id, d.score, d.R, d.t_m * 1000.0, image_time.get(key[:2], -1.0))
         rows.append(((key[0], key[1], order.get(key, 10**9), key[2]), res))
     for i, r in enumerate(foreign):
         t = image_time.get((r.scene_id, r.im_id), r.time_s)
-        rows.append(((r.scene_id, r.im_id, 10**9 + i, 0), bop.BopResult(r.scene_id, r.im_id, r.obj_id, r.score, r.R,
-                                                                       r.t_mm, t)))
+        rows.append(
+            ((r.scene_id, r.im_id, 10**9 + i, 0), bop.BopResult(r.scene_id, r.im_id, r.obj_id, r.score, r.R, r.t_mm, t))
+        )
     rows.sort(key=lambda kr: kr[0])
     bop.write_results(out_dir / RESULTS_FILE, [r for _, r in rows])
 
 
 def _append_journal(out_dir: Path, target: Target, d: Done) -> None:
-    line = json.dumps({
-        "scene_id": target.scene_id, "im_id": target.im_id, "inst": target.inst, "obj_id": target.obj_id,
-        "score": d.score, "time_s": d.time_s, "R": d.R.reshape(9).tolist(), "t_mm": (d.t_m * 1000.0).tolist(),
-        "details": d.details,
-    }, default=_json_default)
+    line = json.dumps(
+        {
+            "scene_id": target.scene_id,
+            "im_id": target.im_id,
+            "inst": target.inst,
+            "obj_id": target.obj_id,
+            "score": d.score,
+            "time_s": d.time_s,
+            "R": d.R.reshape(9).tolist(),
+            "t_mm": (d.t_m * 1000.0).tolist(),
+            "details": d.details,
+        },
+        default=_json_default,
+    )
     with open(out_dir / JOURNAL_FILE, "a") as f:
         f.write(line + "\n")
         f.flush()
@@ -366,8 +396,11 @@ def _check_config(out_dir: Path, config: dict, restart: bool) -> None:
             (out_dir / name).unlink(missing_ok=True)
     elif path.exists() and ((out_dir / RESULTS_FILE).exists() or (out_dir / JOURNAL_FILE).exists()):
         old = bop.read_json(path, "evaluation settings")
-        diffs = [f"{k}: {old.get(k)!r} then, {config.get(k)!r} now" for k in sorted(set(old) | set(config))
-                 if old.get(k) != config.get(k)]
+        diffs = [
+            f"{k}: {old.get(k)!r} then, {config.get(k)!r} now"
+            for k in sorted(set(old) | set(config))
+            if old.get(k) != config.get(k)
+        ]
         if diffs:
             raise PerchError(
                 f"{out_dir} holds results made with other settings ({'; '.join(diffs)}): "
@@ -389,8 +422,9 @@ class TableCache:
     def get(self, im: ImageInfo) -> tuple[Table, str]:
         key = (im.scene_id, im.im_id)
         if key not in self.tables:
-            self.tables[key] = bop.table_for_image(im.entry, im.rgb.parent.parent, im.im_id, im.camera,
-                                                   im.camera_file, self.how)
+            self.tables[key] = bop.table_for_image(
+                im.entry, im.rgb.parent.parent, im.im_id, im.camera, im.camera_file, self.how
+            )
         return self.tables[key]
 
 
@@ -427,8 +461,12 @@ def evaluate(
     selection = select_targets(ds, scenes, objects, max_images, table_source)
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    config = {"dataset": str(Path(dataset_dir).resolve()), "split": split, "table_source": table_source,
-              "options": options or {}}
+    config = {
+        "dataset": str(Path(dataset_dir).resolve()),
+        "split": split,
+        "table_source": table_source,
+        "options": options or {},
+    }
     _check_config(out_dir, config, restart)
     if not selection.targets:
         raise PerchError(f"no targets: no instance of objects {sorted(objects or [])} with a mesh in {ds.split_dir}")
@@ -463,8 +501,14 @@ def evaluate(
             details = dict(est.details)
             details["table"] = table_how
             details.update(_space_details(space, table, target))
-            d = Done(target.obj_id, np.asarray(est.R_m2c, dtype=np.float64).reshape(3, 3),
-                     np.asarray(est.t_m2c_m, dtype=np.float64).reshape(3), float(est.score), dt, details)
+            d = Done(
+                target.obj_id,
+                np.asarray(est.R_m2c, dtype=np.float64).reshape(3, 3),
+                np.asarray(est.t_m2c_m, dtype=np.float64).reshape(3),
+                float(est.score),
+                dt,
+                details,
+            )
             # Journal first: if the rewrite below is interrupted, the journal still has the target.
             _append_journal(out_dir, target, d)
             done[target.key] = d
@@ -479,9 +523,16 @@ def evaluate(
     rows = compute_errors(selection, done, tables, geometry)
     write_per_target(out_dir / "per_target.csv", rows)
     summary = summarize(rows, ds, selection)
-    summary.update({"dataset": str(ds.root), "split": split, "command": command, "options": options or {},
-                    "table_source": table_source, "outputs": [RESULTS_FILE, JOURNAL_FILE, "per_target.csv",
-                                                              "summary.json", "table.txt"]})
+    summary.update(
+        {
+            "dataset": str(ds.root),
+            "split": split,
+            "command": command,
+            "options": options or {},
+            "table_source": table_source,
+            "outputs": [RESULTS_FILE, JOURNAL_FILE, "per_target.csv", "summary.json", "table.txt"],
+        }
+    )
     table_text = format_table(summary)
     (out_dir / "table.txt").write_text(table_text + "\n")
     if plots and rows:
@@ -542,26 +593,60 @@ def compute_errors(selection: Selection, done: dict, tables: TableCache, geometr
                 _, xe, ye, yawe = decompose_on_table(table, d.R, d.t_m)
             except PerchError:  # a foreign estimate that is not a rotation: it still gets ADD-S
                 xe = ye = yawe = float("nan")
-            rows.append({
-                "scene_id": t.scene_id, "im_id": t.im_id, "inst": t.inst, "obj_id": t.obj_id,
-                "visib_fract": t.visib_fract,
-                "adds_mm": 1000.0 * pose_error.add_s(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
-                "add_mm": 1000.0 * pose_error.add(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
-                "te_mm": 1000.0 * pose_error.translation_error(d.t_m, t.t_gt_m),
-                "yaw_err_deg": math.degrees(pose_error.yaw_error(yawe, yawg)) if np.isfinite(yawe) else float("nan"),
-                "x_gt_m": xg, "y_gt_m": yg, "yaw_gt_deg": math.degrees(yawg),
-                "x_est_m": xe, "y_est_m": ye, "yaw_est_deg": math.degrees(yawe),
-                "score": d.score, "time_s": d.time_s, "table": how,
-                "gt_in_region": d.details.get("gt_in_region"), "n_candidates": d.details.get("n_candidates"),
-                "R_est": d.R, "t_est_m": d.t_m, "R_gt": t.R_gt, "t_gt_m": t.t_gt_m,
-            })
+            rows.append(
+                {
+                    "scene_id": t.scene_id,
+                    "im_id": t.im_id,
+                    "inst": t.inst,
+                    "obj_id": t.obj_id,
+                    "visib_fract": t.visib_fract,
+                    "adds_mm": 1000.0 * pose_error.add_s(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
+                    "add_mm": 1000.0 * pose_error.add(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
+                    "te_mm": 1000.0 * pose_error.translation_error(d.t_m, t.t_gt_m),
+                    "yaw_err_deg": math.degrees(pose_error.yaw_error(yawe, yawg))
+                    if np.isfinite(yawe)
+                    else float("nan"),
+                    "x_gt_m": xg,
+                    "y_gt_m": yg,
+                    "yaw_gt_deg": math.degrees(yawg),
+                    "x_est_m": xe,
+                    "y_est_m": ye,
+                    "yaw_est_deg": math.degrees(yawe),
+                    "score": d.score,
+                    "time_s": d.time_s,
+                    "table": how,
+                    "gt_in_region": d.details.get("gt_in_region"),
+                    "n_candidates": d.details.get("n_candidates"),
+                    "R_est": d.R,
+                    "t_est_m": d.t_m,
+                    "R_gt": t.R_gt,
+                    "t_gt_m": t.t_gt_m,
+                }
+            )
     return rows
 
 
 _PER_TARGET_COLUMNS = [
-    "scene_id", "im_id", "inst", "obj_id", "visib_fract", "adds_mm", "add_mm", "te_mm", "yaw_err_deg",
-    "x_gt_m", "y_gt_m", "yaw_gt_deg", "x_est_m", "y_est_m", "yaw_est_deg", "score", "time_s", "table",
-    "gt_in_region", "n_candidates",
+    "scene_id",
+    "im_id",
+    "inst",
+    "obj_id",
+    "visib_fract",
+    "adds_mm",
+    "add_mm",
+    "te_mm",
+    "yaw_err_deg",
+    "x_gt_m",
+    "y_gt_m",
+    "yaw_gt_deg",
+    "x_est_m",
+    "y_est_m",
+    "yaw_est_deg",
+    "score",
+    "time_s",
+    "table",
+    "gt_in_region",
+    "n_candidates",
 ]
 
 
@@ -573,8 +658,12 @@ def write_per_target(path: Path, rows: list[dict]) -> None:
         w = csv.writer(f)
         w.writerow(_PER_TARGET_COLUMNS)
         for r in rows:
-            w.writerow(["" if r[c] is None else (f"{r[c]:.10g}" if isinstance(r[c], float) else r[c])
-                        for c in _PER_TARGET_COLUMNS])
+            w.writerow(
+                [
+                    "" if r[c] is None else (f"{r[c]:.10g}" if isinstance(r[c], float) else r[c])
+                    for c in _PER_TARGET_COLUMNS
+                ]
+            )
 
 
 def _metrics(rows: list[dict]) -> dict:
@@ -669,16 +758,20 @@ def format_table(summary: dict) -> str:
         return format(v, spec) if v is not None and np.isfinite(v) else "-"
 
     for obj in summary["objects"].values():
-        lines.append(f"{obj['name'][:25]:<26}{obj['n']:>6}{fmt(obj['auc'], '9.2f')}"
-                     f"{fmt(obj['adds_below_2cm_pct'], '9.2f')}"
-                     f"{fmt(obj['median_te_mm'], '11.1f')}{fmt(obj['median_yaw_err_deg'], '13.1f')}")
+        lines.append(
+            f"{obj['name'][:25]:<26}{obj['n']:>6}{fmt(obj['auc'], '9.2f')}"
+            f"{fmt(obj['adds_below_2cm_pct'], '9.2f')}"
+            f"{fmt(obj['median_te_mm'], '11.1f')}{fmt(obj['median_yaw_err_deg'], '13.1f')}"
+        )
     lines.append("-" * len(lines[0]))
     a, p = summary["all_objects"], summary["pooled"]
     lines.append(f"{'All Objects (mean)':<26}{'':>6}{fmt(a['auc'], '9.2f')}{fmt(a['adds_below_2cm_pct'], '9.2f')}")
     if p:
-        lines.append(f"{'All targets (pooled)':<26}{p['n']:>6}{fmt(p['auc'], '9.2f')}"
-                     f"{fmt(p['adds_below_2cm_pct'], '9.2f')}"
-                     f"{fmt(p['median_te_mm'], '11.1f')}{fmt(p['median_yaw_err_deg'], '13.1f')}")
+        lines.append(
+            f"{'All targets (pooled)':<26}{p['n']:>6}{fmt(p['auc'], '9.2f')}"
+            f"{fmt(p['adds_below_2cm_pct'], '9.2f')}"
+            f"{fmt(p['median_te_mm'], '11.1f')}{fmt(p['median_yaw_err_deg'], '13.1f')}"
+        )
     rt = summary.get("mean_runtime_s_per_target")
     lines.append(f"{'Mean Runtime':<26}{'':>6}{fmt(rt, '8.1f')}s per target")
     notes = ["ADD-S AUC over 0-10 cm (exact area, %); <2cm: % of targets with ADD-S < 2 cm."]
@@ -731,8 +824,15 @@ def _crop_box(masks: list[np.ndarray], shape: tuple[int, int], margin: float = 0
     return y0, y1, x0, x1
 
 
-def make_plots(out_dir: Path, rows: list[dict], summary: dict, selection: Selection, tables: TableCache,
-               geometry: GeometryCache, gallery: int = 4) -> list[str]:
+def make_plots(
+    out_dir: Path,
+    rows: list[dict],
+    summary: dict,
+    selection: Selection,
+    tables: TableCache,
+    geometry: GeometryCache,
+    gallery: int = 4,
+) -> list[str]:
     """adds_curve.png (thesis Fig. 4.2), occlusion.png (Fig. 4.6), errors.png, gallery.png; returns the names."""
     import matplotlib
 
@@ -755,14 +855,24 @@ def make_plots(out_dir: Path, rows: list[dict], summary: dict, selection: Select
     thr = np.linspace(0.0, AUC_MAX_THRESHOLD_M, 401)
     for ax, (name, rs) in zip(axes.ravel(), panels, strict=False):
         e = np.array([r["adds_mm"] for r in rs]) / 1000.0
-        ax.plot(thr * 100, 100 * pose_error.accuracy_curve(e, thr), color="C0", lw=2,
-                label=f"AUC {pose_error.auc(e):.2f}\n<2cm {pose_error.accuracy_below(e):.1f}%")
+        ax.plot(
+            thr * 100,
+            100 * pose_error.accuracy_curve(e, thr),
+            color="C0",
+            lw=2,
+            label=f"AUC {pose_error.auc(e):.2f}\n<2cm {pose_error.accuracy_below(e):.1f}%",
+        )
         ax.axvline(ADDS_THRESHOLD_M * 100, color="0.6", ls="--", lw=1)
-        ax.set(xlim=(0, AUC_MAX_THRESHOLD_M * 100), ylim=(0, 101), xlabel="ADD-S threshold (cm)",
-               ylabel="accuracy (%)", title=f"{name} (n={len(rs)})")
+        ax.set(
+            xlim=(0, AUC_MAX_THRESHOLD_M * 100),
+            ylim=(0, 101),
+            xlabel="ADD-S threshold (cm)",
+            ylabel="accuracy (%)",
+            title=f"{name} (n={len(rs)})",
+        )
         ax.grid(alpha=0.3)
         ax.legend(loc="lower right", fontsize=8)
-    for ax in axes.ravel()[len(panels):]:
+    for ax in axes.ravel()[len(panels) :]:
         ax.axis("off")
     fig.tight_layout()
     fig.savefig(out_dir / "adds_curve.png", dpi=110)
@@ -778,13 +888,26 @@ def make_plots(out_dir: Path, rows: list[dict], summary: dict, selection: Select
         bars = ax.bar(centres, acc_all, width=8, color="0.8", label="all objects")
         for b, n in zip(bars, occ["all"]["n"], strict=True):
             if n:
-                ax.annotate(f"n={n}", (b.get_x() + b.get_width() / 2, b.get_height()), ha="center", va="bottom",
-                            fontsize=7, xytext=(0, 2), textcoords="offset points")
+                ax.annotate(
+                    f"n={n}",
+                    (b.get_x() + b.get_width() / 2, b.get_height()),
+                    ha="center",
+                    va="bottom",
+                    fontsize=7,
+                    xytext=(0, 2),
+                    textcoords="offset points",
+                )
         for k, (obj, o) in enumerate(occ["objects"].items()):
             a = np.array([np.nan if v is None else v for v in o["accuracy_pct"]])
             ax.plot(centres, a, "o-", color=f"C{k}", label=names[int(obj)], ms=4)
-        ax.set(xlim=(0, 100), ylim=(0, 110), xlabel="occlusion = 1 - visib_fract (%)",
-               ylabel="ADD-S < 2 cm (%)", title="accuracy against occlusion", xticks=100 * edges)
+        ax.set(
+            xlim=(0, 100),
+            ylim=(0, 110),
+            xlabel="occlusion = 1 - visib_fract (%)",
+            ylabel="ADD-S < 2 cm (%)",
+            title="accuracy against occlusion",
+            xticks=100 * edges,
+        )
         ax.legend(fontsize=8, loc="lower left")
         ax.grid(alpha=0.3, axis="y")
         fig.tight_layout()
@@ -796,11 +919,22 @@ def make_plots(out_dir: Path, rows: list[dict], summary: dict, selection: Select
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for k, obj in enumerate(sorted(by_obj)):
         rs = by_obj[obj]
-        ax.scatter([max(r["te_mm"], 0.1) for r in rs], [r["yaw_err_deg"] for r in rs], s=14, color=f"C{k}",
-                   label=names[obj], alpha=0.8)
+        ax.scatter(
+            [max(r["te_mm"], 0.1) for r in rs],
+            [r["yaw_err_deg"] for r in rs],
+            s=14,
+            color=f"C{k}",
+            label=names[obj],
+            alpha=0.8,
+        )
     ax.axvline(ADDS_THRESHOLD_M * 1000, color="0.6", ls="--", lw=1)
-    ax.set(xscale="log", xlabel="translation error (mm, log)", ylabel="yaw error (deg)", ylim=(-5, 185),
-           title="errors per target (yaw ignores symmetries)")
+    ax.set(
+        xscale="log",
+        xlabel="translation error (mm, log)",
+        ylabel="yaw error (deg)",
+        ylim=(-5, 185),
+        title="errors per target (yaw ignores symmetries)",
+    )
     ax.legend(fontsize=8)
     ax.grid(alpha=0.3)
     fig.tight_layout()
@@ -813,8 +947,9 @@ def make_plots(out_dir: Path, rows: list[dict], summary: dict, selection: Select
     return made
 
 
-def _gallery(path: Path, rows: list[dict], names: dict, selection: Selection, geometry: GeometryCache, k: int,
-             plt) -> str:
+def _gallery(
+    path: Path, rows: list[dict], names: dict, selection: Selection, geometry: GeometryCache, k: int, plt
+) -> str:
     """Best and worst targets by ADD-S: crops with the ground truth (green) and the estimate (magenta)."""
     from matplotlib.patches import Patch
 
@@ -848,10 +983,17 @@ def _gallery(path: Path, rows: list[dict], names: dict, selection: Selection, ge
                     tint[c] = (*colour, 0.22)
                     ax.imshow(tint)
                     ax.contour(c.astype(float), levels=[0.5], colors=[colour], linewidths=1.4)
-            ax.set_title(f"{label}: {names[r['obj_id']]}\nscene {r['scene_id']} im {r['im_id']} inst {r['inst']}\n"
-                         f"ADD-S {r['adds_mm']:.1f} mm, yaw err {r['yaw_err_deg']:.0f} deg", fontsize=7)
-    fig.legend(handles=[Patch(color=(0, 0.9, 0), label="ground truth"), Patch(color=(1, 0, 1), label="estimate")],
-               loc="lower center", ncol=2, fontsize=8)
+            ax.set_title(
+                f"{label}: {names[r['obj_id']]}\nscene {r['scene_id']} im {r['im_id']} inst {r['inst']}\n"
+                f"ADD-S {r['adds_mm']:.1f} mm, yaw err {r['yaw_err_deg']:.0f} deg",
+                fontsize=7,
+            )
+    fig.legend(
+        handles=[Patch(color=(0, 0.9, 0), label="ground truth"), Patch(color=(1, 0, 1), label="estimate")],
+        loc="lower center",
+        ncol=2,
+        fontsize=8,
+    )
     fig.tight_layout(rect=(0, 0.04, 1, 1))
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -862,7 +1004,7 @@ def _gallery(path: Path, rows: list[dict], names: dict, selection: Selection, ge
 
 
 def _ids(values: list[str] | None, flag: str) -> list[int] | None:
-    """"3,4,8,9" or "3 4 8 9" -> [3, 4, 8, 9]."""
+    """ "3,4,8,9" or "3 4 8 9" -> [3, 4, 8, 9]."""
     if not values:
         return None
     out = []
@@ -887,13 +1029,18 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     d.add_argument("--objects", nargs="+", metavar="ID", help="object ids, e.g. 3,4,8,9 (default: all with a mesh)")
     d.add_argument("--max-images", type=int, metavar="N", help="only the first N images that have a target")
     d.add_argument("--models", type=Path, metavar="DIR", help="meshes folder (default: dataset_info.json or models/)")
-    d.add_argument("--table-source", choices=("auto", "w2c", "depth"), default="auto",
-                   help="table frame: cam_R_w2c/cam_t_w2c, else a RANSAC plane fit to depth (auto); or insist on one")
+    d.add_argument(
+        "--table-source",
+        choices=("auto", "w2c", "depth"),
+        default="auto",
+        help="table frame: cam_R_w2c/cam_t_w2c, else a RANSAC plane fit to depth (auto); or insist on one",
+    )
     o = parser.add_argument_group("output")
     o.add_argument("--out", required=True, type=Path, metavar="OUTDIR", help="results folder (resumed if it exists)")
     o.add_argument("--restart", action="store_true", help="discard earlier results in OUTDIR instead of resuming")
-    o.add_argument("--gallery", type=int, default=4, metavar="K",
-                   help="best and worst K cases in gallery.png (0: none)")
+    o.add_argument(
+        "--gallery", type=int, default=4, metavar="K", help="best and worst K cases in gallery.png (0: none)"
+    )
     o.add_argument("--no-plots", action="store_true", help="write no PNG plots")
     add_method_arguments(parser)
     add_search_arguments(parser)
@@ -922,14 +1069,28 @@ def run(args: argparse.Namespace) -> int:
     command = shlex.join(["python", "-m", "perch_warp", *sys.argv[1:]])
     try:
         summary = evaluate(
-            args.dataset, args.out, make_estimator=make_estimator, space_fn=space_fn, split=args.split,
-            scenes=scenes, objects=objects, max_images=args.max_images, models_dir=args.models,
-            table_source=args.table_source, options=options, restart=args.restart, plots=not args.no_plots,
-            gallery=args.gallery, command=command,
+            args.dataset,
+            args.out,
+            make_estimator=make_estimator,
+            space_fn=space_fn,
+            split=args.split,
+            scenes=scenes,
+            objects=objects,
+            max_images=args.max_images,
+            models_dir=args.models,
+            table_source=args.table_source,
+            options=options,
+            restart=args.restart,
+            plots=not args.no_plots,
+            gallery=args.gallery,
+            command=command,
         )
     except KeyboardInterrupt:
-        print(f"\ninterrupted: finished targets are saved in {args.out / RESULTS_FILE}; "
-              "run the same command again to continue", file=sys.stderr)
+        print(
+            f"\ninterrupted: finished targets are saved in {args.out / RESULTS_FILE}; "
+            "run the same command again to continue",
+            file=sys.stderr,
+        )
         return 130
     print(summary["table_text"])
     print(f"wrote {', '.join(summary['outputs'])} in {args.out}")
