@@ -53,9 +53,9 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
         choices=["exhaustive", "coarse-to-fine"],
         help="score every grid pose, or a coarse lattice refined around the best (default: exhaustive)",
     )
-    g.add_argument("--coarse-xy", type=float, default=0.04, help="coarse-to-fine: first lattice's x/y step, m")
-    g.add_argument("--coarse-yaw", type=float, default=20.0, help="coarse-to-fine: first lattice's yaw step, deg")
-    g.add_argument("--beam", type=int, default=16, help="coarse-to-fine: candidates refined per level (default 16)")
+    g.add_argument("--coarse-xy", type=float, default=0.02, help="coarse-to-fine: first lattice's x/y step, m")
+    g.add_argument("--coarse-yaw", type=float, default=10.0, help="coarse-to-fine: first lattice's yaw step, deg")
+    g.add_argument("--beam", type=int, default=32, help="coarse-to-fine: candidates refined per level (default 32)")
     g.add_argument("--device", default=None, help="Warp device: cpu | cuda:0 (default: a GPU if Warp sees one)")
     g.add_argument(
         "--batch-pixels", type=int, default=None, help="rendered pixels per batch (default: sized to the device)"

@@ -39,9 +39,9 @@ class EngineConfig:
     relu: bool = False
     batch_pixels: int | None = None  # rendered pixels per batch; None: sized to the device
     search: str = "exhaustive"  # or "coarse-to-fine" (see Engine._coarse_to_fine)
-    coarse_xy_m: float = 0.04  # coarse-to-fine: the first lattice's x/y step
-    coarse_yaw_rad: float = math.radians(20.0)  # coarse-to-fine: the first lattice's yaw step
-    beam: int = 16  # coarse-to-fine: how many best candidates each finer level refines
+    coarse_xy_m: float = 0.02  # coarse-to-fine: the first lattice's x/y step
+    coarse_yaw_rad: float = math.radians(10.0)  # coarse-to-fine: the first lattice's yaw step
+    beam: int = 32  # coarse-to-fine: how many best candidates each finer level refines
     max_polish: int = 10  # coarse-to-fine: hill-climbing rounds on the final grid
 
     def __post_init__(self) -> None:
