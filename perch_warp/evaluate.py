@@ -15,8 +15,10 @@ Outputs in OUTDIR:
                    the BOP toolkit requires.
   targets.jsonl    one line per finished target: exact per-target time and search details.
   per_target.csv   errors of every target (ADD-S, ADD, translation mm, yaw deg, ...).
-  summary.json     metrics per object and over all objects; table.txt the printed table.
-  adds_curve.png, occlusion.png (when scene_gt_info.json exists), errors.png, gallery.png.
+  summary.json     metrics per object and over all objects, and per image label value
+                   (`by_label`, see IMAGE_LABEL_KEYS); table.txt the printed table.
+  adds_curve.png, occlusion.png (when scene_gt_info.json exists), lighting.png (when images
+  carry a `lighting` label), errors.png, gallery.png.
 
 Resuming: both results.csv and targets.jsonl are brought up to date after every
 target (results.csv is rewritten atomically, so it is always a valid BOP file); a
@@ -49,6 +51,9 @@ OCCLUSION_BINS = np.linspace(0.0, 1.0, 11)
 CONFIG_FILE = "eval_config.json"
 JOURNAL_FILE = "targets.jsonl"
 RESULTS_FILE = "results.csv"
+# Per-image labels read from scene_camera.json entries (our synthetic generator writes them;
+# BOP readers ignore unknown keys, and real BOP datasets have none, so nothing changes there).
+IMAGE_LABEL_KEYS = ("lighting", "occlusion")
 
 # Arguments that choose what to evaluate or where to write, not how to search:
 # changing them between runs of one OUTDIR is fine.
@@ -87,6 +92,7 @@ class Target:
     R_gt: np.ndarray  # model -> camera
     t_gt_m: np.ndarray  # metres
     visib_fract: float | None = None
+    labels: dict[str, str] = field(default_factory=dict)  # IMAGE_LABEL_KEYS found in the image's entry
 
     @property
     def key(self) -> tuple[int, int, int]:
@@ -113,6 +119,11 @@ class Selection:
     @property
     def targets(self) -> list[Target]:
         return [t for im in self.images for t in im.targets]
+
+
+def image_labels(entry: dict) -> dict[str, str]:
+    """The string-valued IMAGE_LABEL_KEYS of a scene_camera.json entry (other keys and values are not labels)."""
+    return {k: entry[k] for k in IMAGE_LABEL_KEYS if isinstance(entry.get(k), str)}
 
 
 def select_targets(
@@ -157,6 +168,8 @@ def select_targets(
             if max_images is not None and len(images) >= max_images:
                 break
             targets = []
+            # A missing entry is an error below, once the image is known to have targets.
+            labels = image_labels(cams.get(im_id, {}))
             for k, g in enumerate(gts[im_id]):
                 if wanted is not None and g.obj_id not in wanted:
                     continue
@@ -178,7 +191,7 @@ def select_targets(
                         raise PerchError(f"{info_file}: image {im_id} must list one entry per instance of {gt_file}")
                     if "visib_fract" in lst[k]:
                         vf = float(lst[k]["visib_fract"])
-                targets.append(Target(scene_id, im_id, k, g.obj_id, g.R_m2c, g.t_m2c_m, vf))
+                targets.append(Target(scene_id, im_id, k, g.obj_id, g.R_m2c, g.t_m2c_m, vf, dict(labels)))
             if not targets:
                 continue
             if im_id not in cams:
@@ -600,6 +613,7 @@ def compute_errors(selection: Selection, done: dict, tables: TableCache, geometr
                     "inst": t.inst,
                     "obj_id": t.obj_id,
                     "visib_fract": t.visib_fract,
+                    **{k: t.labels.get(k) for k in IMAGE_LABEL_KEYS},
                     "adds_mm": 1000.0 * pose_error.add_s(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
                     "add_mm": 1000.0 * pose_error.add(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
                     "te_mm": 1000.0 * pose_error.translation_error(d.t_m, t.t_gt_m),
@@ -632,6 +646,7 @@ _PER_TARGET_COLUMNS = [
     "inst",
     "obj_id",
     "visib_fract",
+    *IMAGE_LABEL_KEYS,
     "adds_mm",
     "add_mm",
     "te_mm",
@@ -721,7 +736,28 @@ def summarize(rows: list[dict], ds: bop.Dataset, selection: Selection) -> dict:
     occ = occlusion_accuracy(rows)
     if occ is not None:
         summary["occlusion"] = occ
+    by_label = label_metrics(rows)
+    if by_label:
+        summary["by_label"] = by_label
     return summary
+
+
+def label_metrics(rows: list[dict]) -> dict[str, dict[str, dict]]:
+    """Metrics of the targets pooled over objects, per value of each image label that occurs.
+
+    Values keep their order of first appearance (scene, image order), so a generator's
+    "normal" before "harsh" stays that way; targets without a key are left out of its split.
+    """
+    out: dict[str, dict[str, dict]] = {}
+    for key in IMAGE_LABEL_KEYS:
+        groups: dict[str, list[dict]] = {}
+        for r in rows:
+            value = r.get(key)
+            if value is not None:
+                groups.setdefault(value, []).append(r)
+        if groups:
+            out[key] = {value: _metrics(rs) for value, rs in groups.items()}
+    return out
 
 
 def occlusion_accuracy(rows: list[dict]) -> dict | None:
@@ -772,9 +808,23 @@ def format_table(summary: dict) -> str:
             f"{fmt(p['adds_below_2cm_pct'], '9.2f')}"
             f"{fmt(p['median_te_mm'], '11.1f')}{fmt(p['median_yaw_err_deg'], '13.1f')}"
         )
+    by_label = summary.get("by_label") or {}
+    if by_label:
+        # Below the All Objects mean, so that row still reads as the mean of the object rows above it.
+        lines.append("-" * len(lines[0]))
+        for key, values in by_label.items():
+            for value, m in values.items():
+                lines.append(
+                    f"{f'{key} = {value}'[:25]:<26}{m['n']:>6}{fmt(m['auc'], '9.2f')}"
+                    f"{fmt(m['adds_below_2cm_pct'], '9.2f')}"
+                    f"{fmt(m['median_te_mm'], '11.1f')}{fmt(m['median_yaw_err_deg'], '13.1f')}"
+                )
+        lines.append("-" * len(lines[0]))
     rt = summary.get("mean_runtime_s_per_target")
     lines.append(f"{'Mean Runtime':<26}{'':>6}{fmt(rt, '8.1f')}s per target")
     notes = ["ADD-S AUC over 0-10 cm (exact area, %); <2cm: % of targets with ADD-S < 2 cm."]
+    if by_label:
+        notes.append("Label rows (e.g. lighting = harsh): targets of all objects, by their image's scene_camera label.")
     skipped = summary.get("skipped_no_model") or {}
     if skipped:
         notes.append(f"Skipped (no mesh): {sum(skipped.values())} instances of objects {', '.join(skipped)}.")
@@ -833,7 +883,10 @@ def make_plots(
     geometry: GeometryCache,
     gallery: int = 4,
 ) -> list[str]:
-    """adds_curve.png (thesis Fig. 4.2), occlusion.png (Fig. 4.6), errors.png, gallery.png; returns the names."""
+    """adds_curve.png (thesis Fig. 4.2), occlusion.png (Fig. 4.6), lighting.png, errors.png, gallery.png.
+
+    Returns the names of the files written.
+    """
     import matplotlib
 
     matplotlib.use("Agg")
@@ -915,6 +968,11 @@ def make_plots(
         plt.close(fig)
         made.append("occlusion.png")
 
+    lighting = (summary.get("by_label") or {}).get("lighting")
+    if lighting:
+        _lighting_plot(out_dir / "lighting.png", lighting, plt)
+        made.append("lighting.png")
+
     # Translation vs yaw error, to tell position misses from orientation misses.
     fig, ax = plt.subplots(figsize=(6.5, 4.2))
     for k, obj in enumerate(sorted(by_obj)):
@@ -945,6 +1003,45 @@ def make_plots(
     if gallery > 0:
         made.append(_gallery(out_dir / "gallery.png", rows, names, selection, geometry, gallery, plt))
     return made
+
+
+def _lighting_plot(path: Path, by_value: dict[str, dict], plt) -> None:
+    """ADD-S < 2 cm accuracy and AUC per lighting label value, side by side, with the target count over each pair."""
+    values = list(by_value)
+    x = np.arange(len(values))
+    width = 0.38
+    fig, ax = plt.subplots(figsize=(max(4.5, 1.6 * len(values) + 2.0), 4.0))
+    for offset, metric, label, colour in (
+        (-width / 2, "adds_below_2cm_pct", "ADD-S < 2 cm (%)", "C0"),
+        (width / 2, "auc", "AUC (0-10 cm)", "C1"),
+    ):
+        heights = [np.nan if by_value[v][metric] is None else by_value[v][metric] for v in values]
+        ax.bar(x + offset, heights, width=width, color=colour, label=label)
+    for i, v in enumerate(values):
+        top = max((m for m in (by_value[v]["adds_below_2cm_pct"], by_value[v]["auc"]) if m is not None), default=0.0)
+        ax.annotate(
+            f"n={by_value[v]['n']}",
+            (x[i], top),
+            ha="center",
+            va="bottom",
+            fontsize=8,
+            xytext=(0, 3),
+            textcoords="offset points",
+        )
+    ax.set(
+        xticks=x,
+        xticklabels=values,
+        yticks=np.arange(0, 101, 20),
+        ylim=(0, 130),  # room above 100 % for the counts and the legend
+        xlabel="lighting (scene_camera.json label)",
+        ylabel="%",
+        title="accuracy against lighting",
+    )
+    ax.legend(fontsize=8, loc="upper center", ncol=2)
+    ax.grid(alpha=0.3, axis="y")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
 
 
 def _gallery(

@@ -9,7 +9,7 @@ import math
 
 import numpy as np
 import pytest
-from test_bop import write_tiny_dataset
+from test_bop import K, write_tiny_dataset
 
 from perch_warp import bop
 from perch_warp import evaluate as ev
@@ -184,3 +184,113 @@ def test_command_line_wiring(tmp_path, monkeypatch, capsys):
     assert len(est.calls) == 5
     config = json.loads((tmp_path / "out" / "eval_config.json").read_text())
     assert config["options"]["xy_step"] == 0.02 and "out" not in config["options"]
+
+
+# ----------------------------------------------------------------------------- image labels
+
+# Image 1 holds targets (1, 1, 0), (1, 1, 1), (1, 1, 3); image 2 holds (1, 2, 0), (1, 2, 1).
+# Image 2's occlusion is not a string, so it is no label: the occlusion split covers image 1 only.
+LABELS = {1: {"lighting": "normal", "occlusion": "high"}, 2: {"lighting": "harsh", "occlusion": 0.4}}
+
+
+def write_labelled_dataset(root):
+    """The tiny dataset, its scene_camera.json entries carrying the synthetic generator's labels."""
+    root = write_tiny_dataset(root)
+    path = root / "test" / "000001" / "scene_camera.json"
+    cams = json.loads(path.read_text())
+    for im_id, labels in LABELS.items():
+        cams[str(im_id)].update(labels)
+    path.write_text(json.dumps(cams))
+    return root
+
+
+def independent_adds_m(root, out) -> dict[tuple[int, int, int], float]:
+    """ADD-S (m) per target from results.csv, by brute force (not the evaluator's KD-tree)."""
+    ds = bop.open_dataset(root)
+    gts = bop.load_scene_gt(ds.scene_dir(1) / "scene_gt.json")
+    rows: dict[tuple[int, int], list] = {}
+    for r in bop.read_results(out / "results.csv"):
+        rows.setdefault((r.im_id, r.obj_id), []).append(r)
+    errors = {}
+    for scene, im, inst in OFFSETS:
+        g = gts[im][inst]
+        k = [i for i, h in enumerate(gts[im]) if h.obj_id == g.obj_id].index(inst)
+        r = rows[(im, g.obj_id)][k]
+        pts = load_mesh(ds.model_path(g.obj_id)).vertices_m
+        errors[(scene, im, inst)] = brute_adds(r.R, r.t_mm / 1000, g.R_m2c, g.t_m2c_m, pts)
+    return errors
+
+
+def test_image_labels_are_string_values_of_known_keys():
+    entry = {"cam_K": K, "lighting": "harsh", "occlusion": 3, "weather": "rain"}
+    assert ev.image_labels(entry) == {"lighting": "harsh"}
+    assert ev.image_labels({"cam_K": K}) == {}
+    assert ev.IMAGE_LABEL_KEYS == ("lighting", "occlusion")
+
+
+def test_metrics_by_image_label_agree_with_an_independent_computation(tmp_path):
+    root = write_labelled_dataset(tmp_path / "ds")
+    out = tmp_path / "out"
+    s = run_eval(root, out, FakeEstimator(), plots=True, gallery=0)
+    adds = independent_adds_m(root, out)
+    groups = {
+        "lighting": {"normal": [(1, 1, 0), (1, 1, 1), (1, 1, 3)], "harsh": [(1, 2, 0), (1, 2, 1)]},
+        "occlusion": {"high": [(1, 1, 0), (1, 1, 1), (1, 1, 3)]},
+    }
+    by_label = s["by_label"]
+    assert {k: list(v) for k, v in by_label.items()} == {k: list(v) for k, v in groups.items()}  # first-seen order
+    for key, values in groups.items():
+        for value, keys in values.items():
+            m = by_label[key][value]
+            e = np.array([adds[k] for k in keys])
+            dx = np.array([OFFSETS[k][0] for k in keys])
+            dyaw = np.array([OFFSETS[k][1] for k in keys])
+            assert m["n"] == len(keys)
+            assert m["adds_below_2cm_pct"] == pytest.approx(100 * np.mean(e < 0.02))
+            assert m["auc"] == pytest.approx(100 * np.mean(np.clip(1 - e / 0.1, 0, 1)), abs=1e-6)
+            # Translation and yaw errors are the fake estimator's known offsets.
+            assert m["median_te_mm"] == pytest.approx(1000 * np.median(dx), abs=1e-4)
+            assert m["mean_yaw_err_deg"] == pytest.approx(np.degrees(np.mean(dyaw)), abs=1e-4)
+            assert m["mean_time_s"] is not None and m["mean_time_s"] >= 0
+    # Guard against a vacuous check: the two lighting groups really differ.
+    assert by_label["lighting"]["normal"]["median_te_mm"] == pytest.approx(15.0, abs=1e-4)
+    assert by_label["lighting"]["harsh"]["median_te_mm"] == pytest.approx(62.0, abs=1e-4)
+
+    saved = json.loads((out / "summary.json").read_text())
+    assert saved["by_label"]["lighting"]["harsh"]["n"] == 2
+    per_target = list(csv.DictReader(open(out / "per_target.csv")))
+    for row in per_target:
+        im = int(row["im_id"])
+        assert row["lighting"] == LABELS[im]["lighting"]
+        assert row["occlusion"] == ("high" if im == 1 else "")
+    table = (out / "table.txt").read_text()
+    for label in ("lighting = normal", "lighting = harsh", "occlusion = high"):
+        assert label in table and label in s["table_text"]
+    assert "occlusion = 0.4" not in table
+    assert table.index("001 box") < table.index("lighting = normal")
+    assert (out / "lighting.png").stat().st_size > 1000 and "lighting.png" in s["outputs"]
+
+
+def test_occlusion_label_alone_gives_no_lighting_plot(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    path = root / "test" / "000001" / "scene_camera.json"
+    cams = json.loads(path.read_text())
+    for entry in cams.values():
+        entry["occlusion"] = "low"
+    path.write_text(json.dumps(cams))
+    s = run_eval(root, tmp_path / "out", FakeEstimator(), plots=True, gallery=0)
+    assert list(s["by_label"]) == ["occlusion"] and s["by_label"]["occlusion"]["low"]["n"] == 5
+    assert s["by_label"]["occlusion"]["low"]["auc"] == pytest.approx(s["pooled"]["auc"])
+    assert not (tmp_path / "out" / "lighting.png").exists()
+
+
+def test_dataset_without_labels_has_no_label_breakdown(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    out = tmp_path / "out"
+    s = run_eval(root, out, FakeEstimator(), plots=True, gallery=0)
+    assert "by_label" not in s and "by_label" not in json.loads((out / "summary.json").read_text())
+    assert not (out / "lighting.png").exists() and "lighting.png" not in s["outputs"]
+    table = (out / "table.txt").read_text()
+    assert "lighting =" not in table and "occlusion =" not in table
+    per_target = list(csv.DictReader(open(out / "per_target.csv")))
+    assert len(per_target) == 5 and all(r["lighting"] == "" and r["occlusion"] == "" for r in per_target)
