@@ -56,6 +56,12 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--coarse-xy", type=float, default=0.02, help="coarse-to-fine: first lattice's x/y step, m")
     g.add_argument("--coarse-yaw", type=float, default=10.0, help="coarse-to-fine: first lattice's yaw step, deg")
     g.add_argument("--beam", type=int, default=32, help="coarse-to-fine: candidates refined per level (default 32)")
+    g.add_argument(
+        "--image-scale",
+        type=float,
+        default=1.0,
+        help="search on the photo resized by this factor in (0, 1], e.g. 0.5 for 4x fewer rays (default: 1)",
+    )
     g.add_argument("--device", default=None, help="Warp device: cpu | cuda:0 (default: a GPU if Warp sees one)")
     g.add_argument(
         "--batch-pixels", type=int, default=None, help="rendered pixels per batch (default: sized to the device)"
@@ -95,6 +101,7 @@ def engine_config_from_args(args: argparse.Namespace):
         coarse_xy_m=args.coarse_xy,
         coarse_yaw_rad=math.radians(args.coarse_yaw),
         beam=args.beam,
+        image_scale=args.image_scale,
     )
 
 

@@ -42,3 +42,12 @@ def test_bad_intrinsics_are_refused(k, match):
 def test_size_in_file_must_match_image():
     with pytest.raises(PerchError, match="width"):
         camera_from_entry({"cam_K": K, "width": 800}, 640, 480)
+
+
+def test_scaled_camera_keeps_pixel_centres_consistent():
+    cam = Camera(np.array(K).reshape(3, 3), 640, 480)
+    half = cam.scaled(0.5)
+    assert (half.width, half.height) == (320, 240)
+    X = np.array([0.05, -0.03, 0.7])
+    # A full-size pixel centre u maps to (u + 0.5) / 2 - 0.5 at half size (area resampling).
+    assert np.allclose(half.project(X), (cam.project(X) + 0.5) * 0.5 - 0.5)

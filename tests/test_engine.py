@@ -85,3 +85,17 @@ def test_coarse_to_fine_scores_a_subset_and_matches_exhaustive_here(scene, caffe
     assert c2f.info["evaluated"] < len(space) / 3
     assert (c2f.x_m, c2f.y_m, c2f.yaw_rad) == (ex.x_m, ex.y_m, ex.yaw_rad)
     assert c2f.score == pytest.approx(ex.score, abs=1e-6)
+
+
+def test_half_scale_search_finds_the_pose_too(scene, caffe_weights):
+    gx, gy, gyaw = scene.truth_xy_yaw
+    space = _space_around(gx, gy)
+    cfg = EngineConfig(image_scale=0.5)
+    r = Engine(scene.mesh, caffe_weights, "cpu", cfg).estimate(
+        scene.image, scene.camera, scene.table, scene.resting, space
+    )
+    assert abs(r.x_m - gx) <= 0.01 + 1e-9 and abs(r.y_m - gy) <= 0.01 + 1e-9
+    assert _yaw_err_deg(r.yaw_rad, gyaw) <= 30.0
+    # The pose is still expressed for the full-size camera (metres, model -> camera).
+    R, t = model_to_camera(scene.table, scene.resting, r.x_m, r.y_m, r.yaw_rad)
+    assert np.allclose(r.T_m2c[:3, 3], t[0])
