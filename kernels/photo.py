@@ -8,7 +8,7 @@ own pass (camera frame, metres) and passes are composited by depth.
 
 import warp as wp
 
-from .render import sample_texture
+from .render import surface_color
 
 
 @wp.kernel(enable_backward=False)
@@ -33,14 +33,7 @@ def primary_pass(
     d = wp.normalize(wp.vec3((float(u) - cx) / fx, (float(v) - cy) / fy, 1.0))
     q = wp.mesh_query_ray(mesh, wp.vec3(0.0, 0.0, 0.0), d, depth[v, u])
     if q.result:
-        i0 = indices[q.face * 3 + 0]
-        i1 = indices[q.face * 3 + 1]
-        i2 = indices[q.face * 3 + 2]
-        w2 = 1.0 - q.u - q.v
-        if use_texture != 0:
-            albedo[v, u] = sample_texture(texture, uvs[i0] * q.u + uvs[i1] * q.v + uvs[i2] * w2)
-        else:
-            albedo[v, u] = colors[i0] * q.u + colors[i1] * q.v + colors[i2] * w2
+        albedo[v, u] = surface_color(indices, uvs, texture, colors, use_texture, q.face, q.u, q.v)
         n = wp.normalize(q.normal)
         if wp.dot(n, d) > 0.0:
             n = -n

@@ -42,6 +42,28 @@ def sample_texture(tex: wp.array2d(dtype=wp.vec3), uv: wp.vec2) -> wp.vec3:
     return top * (1.0 - fy) + bot * fy
 
 
+@wp.func
+def surface_color(
+    indices: wp.array(dtype=wp.int32),
+    uvs: wp.array(dtype=wp.vec2),
+    texture: wp.array2d(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    use_texture: int,
+    face: int,
+    bu: float,
+    bv: float,
+) -> wp.vec3:
+    """Unlit colour at barycentric (bu, bv) of `face`: texture lookup or interpolated vertex colour."""
+    i0 = indices[face * 3 + 0]
+    i1 = indices[face * 3 + 1]
+    i2 = indices[face * 3 + 2]
+    # Warp's barycentrics weight the face's corners as (u, v, 1 - u - v).
+    w2 = 1.0 - bu - bv
+    if use_texture != 0:
+        return sample_texture(texture, uvs[i0] * bu + uvs[i1] * bv + uvs[i2] * w2)
+    return colors[i0] * bu + colors[i1] * bv + colors[i2] * w2
+
+
 @wp.kernel(enable_backward=False)
 def render_boxes(
     mesh: wp.uint64,
@@ -72,16 +94,7 @@ def render_boxes(
     d_m = rot_c2m[c] * d_c
     q = wp.mesh_query_ray(mesh, origin_m[c], d_m, 1.0e6)
     if q.result:
-        i0 = indices[q.face * 3 + 0]
-        i1 = indices[q.face * 3 + 1]
-        i2 = indices[q.face * 3 + 2]
-        # Warp's barycentrics weight the face's corners as (u, v, 1 - u - v).
-        w2 = 1.0 - q.u - q.v
-        if use_texture != 0:
-            uv = uvs[i0] * q.u + uvs[i1] * q.v + uvs[i2] * w2
-            out_rgb[i] = sample_texture(texture, uv)
-        else:
-            out_rgb[i] = colors[i0] * q.u + colors[i1] * q.v + colors[i2] * w2
+        out_rgb[i] = surface_color(indices, uvs, texture, colors, use_texture, q.face, q.u, q.v)
         out_mask[i] = wp.uint8(1)
     else:
         out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)
