@@ -4,6 +4,10 @@ A feature point is a pixel (u, v) = (half + s*gx, half + s*gy) of the global fea
 grid (stride s, half = ks // 2), so every 11x11 window lies inside the image and the
 photo's feature map equals a stride-s, unpadded convolution of the photo.
 
+The grid extends beyond the image: a candidate's silhouette points outside the photo
+count towards its size with score 0, so α stays the fraction of the *object* that
+must be visible, and a pose mostly outside the picture cannot win on a few points.
+
 The candidate's image is never materialised: a window pixel takes the rendered
 colour where the candidate's mask covers it and the photo's colour elsewhere
 (compositing onto the observed image, thesis §3.2.1).
@@ -117,6 +121,10 @@ def feature_kernels(C: int):
                 on_mask = 1
         if on_mask == 0:
             out[i] = NOT_ON_MASK
+            return
+        if gx < 0 or gy < 0 or gx >= obs_feat.shape[1] or gy >= obs_feat.shape[0]:
+            # Silhouette beyond the photo's feature grid: part of the object, but nothing to compare.
+            out[i] = 0.0
             return
         f = conv_at(image, rgb, mask, pix_off[c], rb, u, v, Wt, bias, ks, relu)
         denom = wp.length(f) * obs_norm[gy, gx]

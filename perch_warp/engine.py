@@ -227,7 +227,7 @@ class Engine:
                 f"{n_bad} of {len(boxes)} candidate poses are behind or within {MIN_DEPTH_M} m of the camera: "
                 "check the table frame and the search ranges"
             )
-        gboxes = grid_boxes(boxes, photo.rows, photo.cols, ks, cfg.stride)
+        gboxes = grid_boxes(boxes, ks, cfg.stride)
         live = np.flatnonzero(gboxes[:, 2] * gboxes[:, 3] > 0)
         t = self._lap(timings, "candidates", t)
 

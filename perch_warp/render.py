@@ -20,11 +20,13 @@ MIN_DEPTH_M = 0.02
 
 
 def project_boxes(camera: Camera, hull_m: np.ndarray, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> np.ndarray:
-    """Pixel boxes (N, 4) = (x0, y0, w, h) covering each candidate's projection, clipped to the image.
+    """Pixel boxes (N, 4) = (x0, y0, w, h) covering each candidate's whole projection.
 
-    `hull_m` are model-frame points (m) whose projection bounds the mesh's (its convex
-    hull). w = h = 0 where the candidate is outside the image; -1 where it is behind
-    or too close to the camera.
+    Boxes are not clipped to the image: the part of a silhouette outside the picture
+    still counts towards the object's size (see kernels/features.py). `hull_m` are
+    model-frame points (m) whose projection bounds the mesh's (its convex hull).
+    w = h = 0 where the candidate does not overlap the image; -1 where it is behind or
+    too close to the camera.
     """
     out = np.zeros((len(R_m2c), 4), dtype=np.int32)
     chunk = max(1, 2_000_000 // max(1, len(hull_m)))
@@ -35,13 +37,10 @@ def project_boxes(camera: Camera, hull_m: np.ndarray, R_m2c: np.ndarray, t_m2c_m
         z = np.where(z < MIN_DEPTH_M, MIN_DEPTH_M, z)
         u = camera.fx * P[..., 0] / z + camera.cx
         v = camera.fy * P[..., 1] / z + camera.cy
-        x0 = np.maximum(np.floor(u.min(1)), 0)
-        x1 = np.minimum(np.ceil(u.max(1)), camera.width - 1)
-        y0 = np.maximum(np.floor(v.min(1)), 0)
-        y1 = np.minimum(np.ceil(v.max(1)), camera.height - 1)
-        w = np.where(x1 >= x0, x1 - x0 + 1, 0)
-        h = np.where(y1 >= y0, y1 - y0 + 1, 0)
-        empty = (w == 0) | (h == 0)
+        x0, x1 = np.floor(u.min(1)), np.ceil(u.max(1))
+        y0, y1 = np.floor(v.min(1)), np.ceil(v.max(1))
+        w, h = x1 - x0 + 1, y1 - y0 + 1
+        empty = (x1 < 0) | (y1 < 0) | (x0 > camera.width - 1) | (y0 > camera.height - 1)
         box = np.stack([x0, y0, w, h], -1)
         box[empty] = 0
         box[behind] = -1

@@ -109,14 +109,15 @@ class FeatureScorer:
         return out, pt_off
 
 
-def grid_boxes(boxes: np.ndarray, grid_rows: int, grid_cols: int, kernel_size: int, stride: int) -> np.ndarray:
-    """Feature-grid cells (gx0, gy0, gw, gh) whose centre pixels lie inside each pixel box (x0, y0, w, h)."""
+def grid_boxes(boxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:
+    """Cells (gx0, gy0, gw, gh) of the feature grid, extended beyond the image, whose centre
+    pixels (half + s*gx, half + s*gy) lie inside each pixel box (x0, y0, w, h)."""
     half = kernel_size // 2
     x0, y0, w, h = (boxes[:, i].astype(np.int64) for i in range(4))
-    gx0 = np.maximum(0, -((half - x0) // stride))  # ceil((x0 - half) / s)
-    gy0 = np.maximum(0, -((half - y0) // stride))
-    gx1 = np.minimum(grid_cols - 1, (x0 + w - 1 - half) // stride)
-    gy1 = np.minimum(grid_rows - 1, (y0 + h - 1 - half) // stride)
+    gx0 = -((half - x0) // stride)  # ceil((x0 - half) / s)
+    gy0 = -((half - y0) // stride)
+    gx1 = (x0 + w - 1 - half) // stride
+    gy1 = (y0 + h - 1 - half) // stride
     gw = np.where((w > 0) & (gx1 >= gx0), gx1 - gx0 + 1, 0)
     gh = np.where((h > 0) & (gy1 >= gy0), gy1 - gy0 + 1, 0)
     empty = (gw == 0) | (gh == 0)

@@ -57,9 +57,9 @@ def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, str
         crgb = rgb[pix_off[c] : pix_off[c + 1]].reshape(bh, bw, 3)
         cmask = mask[pix_off[c] : pix_off[c + 1]].reshape(bh, bw).astype(bool)
         comp = img.astype(np.float64) / 255.0
-        comp = comp.copy()
-        region = comp[y0 : y0 + bh, x0 : x0 + bw]
-        region[cmask] = crgb[cmask]
+        for yy, xx in zip(*np.nonzero(cmask), strict=True):
+            if 0 <= y0 + yy < comp.shape[0] and 0 <= x0 + xx < comp.shape[1]:
+                comp[y0 + yy, x0 + xx] = crgb[yy, xx]
         compn = (comp - np.array(w.mean)) / np.array(w.std)
         for gy in range(gy0, gy0 + gh):
             for gx in range(gx0, gx0 + gw):
@@ -67,6 +67,9 @@ def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, str
                 inside = x0 <= u < x0 + bw and y0 <= v < y0 + bh
                 if not (inside and cmask[v - y0, u - x0]):
                     out.append(NOT_ON_MASK)
+                    continue
+                if not (0 <= gx < rarity.shape[1] and 0 <= gy < rarity.shape[0]):
+                    out.append(0.0)
                     continue
                 f = (W * compn[v - half : v + half + 1, u - half : u + half + 1].transpose(2, 0, 1)[None]).sum(
                     (1, 2, 3)
@@ -84,13 +87,14 @@ def test_candidate_scores_equal_numpy_reference(random_weights):
     rng = np.random.default_rng(3)
     H, W_, stride = 40, 52, 3
     img = rng.integers(0, 256, (H, W_, 3), dtype=np.uint8)
-    boxes = np.array([[4, 6, 20, 15], [30, 0, 22, 40], [0, 25, 10, 15]], np.int32)
+    # The last two boxes hang over the image's edges: their outside points count as 0.
+    boxes = np.array([[4, 6, 20, 15], [30, 0, 22, 40], [0, 25, 10, 15], [40, -9, 20, 18], [-7, 30, 15, 14]], np.int32)
     sizes = boxes[:, 2] * boxes[:, 3]
     pix_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
     rgb = rng.random((pix_off[-1], 3)).astype(np.float32)
     mask = (rng.random(pix_off[-1]) < 0.7).astype(np.uint8)
     rows, cols = grid_shape(W_, H, 11, stride)
-    gboxes = grid_boxes(boxes, rows, cols, 11, stride)
+    gboxes = grid_boxes(boxes, 11, stride)
     rarity = rng.random((rows, cols)).astype(np.float32)
 
     sc = FeatureScorer(random_weights, "cpu", stride)
@@ -112,20 +116,21 @@ def test_candidate_scores_equal_numpy_reference(random_weights):
     assert got.shape == ref.shape and pt_off[-1] == len(ref)
     off = ref == NOT_ON_MASK
     assert np.array_equal(got == NOT_ON_MASK, off) and 0 < off.sum() < len(ref)
+    assert (ref == 0.0).sum() > 5  # on-mask points beyond the feature grid were exercised
     assert np.abs(got[~off] - ref[~off]).max() < 1e-4
 
 
 def test_grid_boxes_hold_exactly_the_centres_inside():
     rng = np.random.default_rng(4)
-    rows, cols, stride = 20, 30, 4
+    stride = 4
     for _ in range(50):
-        x0, y0 = rng.integers(0, 120, 2)
+        x0, y0 = rng.integers(-30, 120, 2)
         w, h = rng.integers(1, 40, 2)
-        g = grid_boxes(np.array([[x0, y0, w, h]]), rows, cols, 11, stride)[0]
+        g = grid_boxes(np.array([[x0, y0, w, h]]), 11, stride)[0]
         want = [
             (gx, gy)
-            for gy in range(rows)
-            for gx in range(cols)
+            for gy in range(-20, 60)
+            for gx in range(-20, 60)
             if x0 <= 5 + stride * gx < x0 + w and y0 <= 5 + stride * gy < y0 + h
         ]
         got = [(gx, gy) for gy in range(g[1], g[1] + g[3]) for gx in range(g[0], g[0] + g[2])]

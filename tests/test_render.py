@@ -99,9 +99,11 @@ def test_batched_boxes_equal_single_renders(box):
 
 def test_boxes_flag_candidates_outside_or_behind():
     hull = np.array([[-0.01, -0.01, 0], [0.01, 0.01, 0.02]])
-    R = np.repeat(np.eye(3)[None], 3, 0)
-    t = np.array([[0.0, 0.0, 0.5], [5.0, 0.0, 0.5], [0.0, 0.0, -0.5]])
+    R = np.repeat(np.eye(3)[None], 4, 0)
+    t = np.array([[0.0, 0.0, 0.5], [5.0, 0.0, 0.5], [0.0, 0.0, -0.5], [0.27, 0.0, 0.5]])
     boxes = project_boxes(CAM, hull, R, t)
     assert boxes[0, 2] > 0 and boxes[0, 3] > 0
     assert tuple(boxes[1]) == (0, 0, 0, 0)
     assert boxes[2, 2] == -1
+    # Overlapping the right edge: the box keeps the part beyond the image.
+    assert boxes[3, 0] < CAM.width <= boxes[3, 0] + boxes[3, 2] - 1
