@@ -1,7 +1,7 @@
 """Command line: `python -m perch_warp IMAGE --mesh MESH --camera CAMERA.json ...` and subcommands.
 
 Subcommands: `demo` (a self-made scene, offline), `eval` (BOP datasets), `synth`
-(synthetic BOP scenes). Bad input ends with one line on stderr and exit code 1.
+(synthetic BOP scenes), `bench` (speed measurements). Bad input ends with one line on stderr and exit code 1.
 """
 
 from __future__ import annotations
@@ -24,6 +24,7 @@ SUBCOMMANDS = {
     "demo": ("perch_warp.demo", "run the whole pipeline on a scene the project makes itself (offline)"),
     "eval": ("perch_warp.evaluate", "evaluate on a BOP-format dataset (ADD-S, AUC, plots)"),
     "synth": ("perch_warp.synth", "generate photorealistic synthetic BOP test scenes"),
+    "bench": ("perch_warp.bench", "time the reference workload, a ray-casting microbenchmark and its Open3D peer"),
 }
 
 

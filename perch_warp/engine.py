@@ -133,6 +133,7 @@ class Engine:
         cfg = self.config
         timings: dict[str, float] = {}
         self._n_batches = 0
+        self._n_rays = 0
         if cfg.image_scale != 1.0:
             image_rgb, camera = _rescale(check_rgb(image_rgb), camera, cfg.image_scale)
         photo = self._photo(image_rgb, camera, timings)
@@ -180,6 +181,7 @@ class Engine:
                 "search_space": space.describe(),
                 "evaluated": len(x),
                 "batches": self._n_batches,
+                "rays": self._n_rays,  # pixels ray-cast by kernel #1 (the rendered boxes' areas)
                 **({"levels": levels} if levels else {}),
             },
         )
@@ -234,6 +236,7 @@ class Engine:
         scores = np.full(len(x), -np.inf)
         budget = cfg.batch_pixels or _batch_pixels(self.device)
         sizes = boxes[live, 2].astype(np.int64) * boxes[live, 3]
+        self._n_rays += int(sizes.sum())
         if bar is not None:
             bar.total += len(live)
             bar.refresh()
