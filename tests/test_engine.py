@@ -5,6 +5,7 @@ import math
 
 import numpy as np
 import pytest
+from _device import DEVICE
 
 from perch_warp.camera import camera_from_entry
 from perch_warp.demo import demo_scene
@@ -36,7 +37,7 @@ def _yaw_err_deg(a, b):
 def test_recovers_known_pose_within_one_grid_step(scene, caffe_weights):
     gx, gy, gyaw = scene.truth_xy_yaw
     space = _space_around(gx, gy)
-    r = Engine(scene.mesh, caffe_weights, "cpu").estimate(scene.image, scene.camera, scene.table, scene.resting, space)
+    r = Engine(scene.mesh, caffe_weights, DEVICE).estimate(scene.image, scene.camera, scene.table, scene.resting, space)
     assert abs(r.x_m - gx) <= 0.01 + 1e-9 and abs(r.y_m - gy) <= 0.01 + 1e-9
     assert _yaw_err_deg(r.yaw_rad, gyaw) <= 30.0
     assert r.n_scored == r.n_candidates == len(space)
@@ -50,9 +51,9 @@ def test_same_answer_twice_and_for_any_batch_size(scene, random_weights):
     gx, gy, _ = scene.truth_xy_yaw
     space = _space_around(gx, gy, half=0.02, yaw_step_deg=45.0)
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
-    a = Engine(scene.mesh, random_weights, "cpu").estimate(*args)
-    b = Engine(scene.mesh, random_weights, "cpu").estimate(*args)
-    c = Engine(scene.mesh, random_weights, "cpu", EngineConfig(batch_pixels=5000)).estimate(*args)
+    a = Engine(scene.mesh, random_weights, DEVICE).estimate(*args)
+    b = Engine(scene.mesh, random_weights, DEVICE).estimate(*args)
+    c = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(batch_pixels=5000)).estimate(*args)
     assert c.info["batches"] > a.info["batches"]
     for other in (b, c):
         assert [(k.x_m, k.y_m, k.yaw_rad) for k in other.top_k] == [(k.x_m, k.y_m, k.yaw_rad) for k in a.top_k]
@@ -71,7 +72,7 @@ def test_real_frame_potted_meat_can(shared, caffe_weights):
     resting, gx, gy, _ = decompose_on_table(table, R_gt, t_gt)
     mesh = load_mesh(shared / "data" / "ycbv" / "models" / "obj_000009.obj")
     space = _space_around(gx, gy, half=0.03, yaw_step_deg=15.0)
-    r = Engine(mesh, caffe_weights, "cpu").estimate(image, camera, table, resting, space)
+    r = Engine(mesh, caffe_weights, DEVICE).estimate(image, camera, table, resting, space)
     assert adi(r.T_m2c[:3, :3], r.T_m2c[:3, 3], R_gt, t_gt, mesh.vertices_m) < 0.02
 
 
@@ -79,9 +80,9 @@ def test_coarse_to_fine_scores_a_subset_and_matches_exhaustive_here(scene, caffe
     gx, gy, _ = scene.truth_xy_yaw
     space = _space_around(gx, gy, half=0.06, yaw_step_deg=15.0)
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
-    ex = Engine(scene.mesh, caffe_weights, "cpu").estimate(*args)
+    ex = Engine(scene.mesh, caffe_weights, DEVICE).estimate(*args)
     cfg = EngineConfig(search="coarse-to-fine", coarse_xy_m=0.04, coarse_yaw_rad=math.radians(45), beam=4)
-    c2f = Engine(scene.mesh, caffe_weights, "cpu", cfg).estimate(*args)
+    c2f = Engine(scene.mesh, caffe_weights, DEVICE, cfg).estimate(*args)
     assert c2f.info["evaluated"] < len(space) / 3
     assert (c2f.x_m, c2f.y_m, c2f.yaw_rad) == (ex.x_m, ex.y_m, ex.yaw_rad)
     assert c2f.score == pytest.approx(ex.score, abs=1e-6)
@@ -91,7 +92,7 @@ def test_half_scale_search_finds_the_pose_too(scene, caffe_weights):
     gx, gy, gyaw = scene.truth_xy_yaw
     space = _space_around(gx, gy)
     cfg = EngineConfig(image_scale=0.5)
-    r = Engine(scene.mesh, caffe_weights, "cpu", cfg).estimate(
+    r = Engine(scene.mesh, caffe_weights, DEVICE, cfg).estimate(
         scene.image, scene.camera, scene.table, scene.resting, space
     )
     assert abs(r.x_m - gx) <= 0.01 + 1e-9 and abs(r.y_m - gy) <= 0.01 + 1e-9

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 import warp as wp
+from _device import DEVICE
 from perch_warp.kernels.features import NOT_ON_MASK
 
 from perch_warp.errors import PerchError
@@ -26,7 +27,7 @@ def _torch_features(image_u8: np.ndarray, w: FeatureWeights, stride: int) -> np.
 @pytest.mark.parametrize("stride", [1, 4])
 def test_photo_features_equal_torch_conv(random_weights, stride):
     img = np.random.default_rng(1).integers(0, 256, (37, 45, 3), dtype=np.uint8)
-    sc = FeatureScorer(random_weights, "cpu", stride)
+    sc = FeatureScorer(random_weights, DEVICE, stride)
     got = sc.observed_features(sc.image_to_device(img)).numpy()
     ref = _torch_features(img, random_weights, stride)
     assert got.shape == ref.shape == (*grid_shape(45, 37, 11, stride), 96)
@@ -35,7 +36,7 @@ def test_photo_features_equal_torch_conv(random_weights, stride):
 
 def test_caffe_preprocessing_is_rgb255_minus_mean(caffe_weights):
     img = np.random.default_rng(2).integers(0, 256, (23, 23, 3), dtype=np.uint8)
-    sc = FeatureScorer(caffe_weights, "cpu", 4)
+    sc = FeatureScorer(caffe_weights, DEVICE, 4)
     got = sc.observed_features(sc.image_to_device(img)).numpy()
     x = img.astype(np.float64) - np.array([123.68, 116.78, 103.94])
     # Caffe conv1 at the first window: sum over (channel, y, x) of W * (RGB - mean), plus bias.
@@ -97,19 +98,19 @@ def test_candidate_scores_equal_numpy_reference(random_weights):
     gboxes = grid_boxes(boxes, 11, stride)
     rarity = rng.random((rows, cols)).astype(np.float32)
 
-    sc = FeatureScorer(random_weights, "cpu", stride)
+    sc = FeatureScorer(random_weights, DEVICE, stride)
     image = sc.image_to_device(img)
     obs = sc.observed_features(image)
     norms = np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32)
     batch = RenderedBatch(
-        wp.array(rgb, dtype=wp.vec3, device="cpu"),
-        wp.array(mask, dtype=wp.uint8, device="cpu"),
-        wp.array(boxes, dtype=wp.vec4i, device="cpu"),
-        wp.array(pix_off, dtype=wp.int32, device="cpu"),
+        wp.array(rgb, dtype=wp.vec3, device=DEVICE),
+        wp.array(mask, dtype=wp.uint8, device=DEVICE),
+        wp.array(boxes, dtype=wp.vec4i, device=DEVICE),
+        wp.array(pix_off, dtype=wp.int32, device=DEVICE),
         len(boxes),
     )
     vals, pt_off = sc.score_points(
-        image, batch, gboxes, obs, wp.array(norms, device="cpu"), wp.array(rarity, device="cpu")
+        image, batch, gboxes, obs, wp.array(norms, device=DEVICE), wp.array(rarity, device=DEVICE)
     )
     got = vals.numpy()
     ref = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity)

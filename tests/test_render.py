@@ -4,6 +4,7 @@ import math
 
 import numpy as np
 import pytest
+from _device import DEVICE
 from matplotlib.path import Path as MplPath
 from scipy.spatial import ConvexHull
 
@@ -40,7 +41,7 @@ def box():
 
 def test_mask_matches_projected_vertex_hull(box):
     R, t = _pose(box)
-    rgb, mask = MeshRenderer(box, "cpu").render_image(CAM, R, t)
+    rgb, mask = MeshRenderer(box, DEVICE).render_image(CAM, R, t)
     uv = CAM.project(box.vertices_m @ R.T + t)
     hull = uv[ConvexHull(uv).vertices]
     vv, uu = np.mgrid[0 : CAM.height, 0 : CAM.width]
@@ -55,7 +56,7 @@ def test_mask_matches_projected_vertex_hull(box):
 
 def test_face_colours_come_from_their_texture_tiles(box):
     R, t = _pose(box)
-    rgb, mask = MeshRenderer(box, "cpu").render_image(CAM, R, t)
+    rgb, mask = MeshRenderer(box, DEVICE).render_image(CAM, R, t)
     checked = 0
     for k in range(6):
         quad = box.vertices_m[4 * k : 4 * k + 4] @ R.T + t
@@ -74,13 +75,13 @@ def test_vertex_colours_are_interpolated():
     cyl = striped_cylinder(0.03, 0.08, np.random.default_rng(0))
     cyl = type(cyl)(cyl.vertices_m, cyl.faces, None, None, np.tile([[0.2, 0.5, 0.7]], (len(cyl.vertices_m), 1)))
     R, t = _pose(cyl)
-    rgb, mask = MeshRenderer(cyl, "cpu").render_image(CAM, R, t)
+    rgb, mask = MeshRenderer(cyl, DEVICE).render_image(CAM, R, t)
     assert mask.sum() > 200
     assert np.allclose(rgb[mask], [0.2, 0.5, 0.7], atol=1e-5)
 
 
 def test_batched_boxes_equal_single_renders(box):
-    r = MeshRenderer(box, "cpu")
+    r = MeshRenderer(box, DEVICE)
     rp = RestingPose.upright(box.vertices_m)
     R, t = model_to_camera(
         TABLE, rp, np.array([0.0, 0.03, -0.05]), np.array([0.0, 0.02, 0.01]), np.radians([0, 50, 200])
