@@ -1,8 +1,9 @@
 """The search engine: build once per mesh (and weights, device), call once per photo.
 
-Stages: photo features -> rarity (k-means) -> candidate poses and boxes ->
-per batch: render (kernel #1) -> features x similarity x rarity (kernel #2) ->
-top-α mean -> best pose.
+Stages: photo features -> rarity (k-means) -> candidate poses and their boxes
+(kernels/boxes.py) -> per batch: render (kernel #1) -> features x similarity x
+rarity (kernel #2) -> top-α mean (kernels/reduce.py) -> best pose. Only boxes and
+one score per candidate come back to the host.
 """
 
 from __future__ import annotations
@@ -20,9 +21,9 @@ from .features import FeatureWeights
 from .image import check_rgb
 from .mesh import ObjectMesh
 from .rarity import rarity as rarity_fn
-from .render import MIN_DEPTH_M, MeshRenderer, project_boxes
+from .render import MIN_DEPTH_M, BoxProjector, MeshRenderer
 from .result import Candidate, Result
-from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean
+from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean_device
 from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera, pose_matrix
 
@@ -111,9 +112,11 @@ class Engine:
         self.renderer = MeshRenderer(mesh, self.device)
         self.scorer = FeatureScorer(weights, self.device, self.config.stride, self.config.relu)
         self.scorer.warm_up()
-        wp.load_module("perch_warp.kernels.render", device=self.device)
-        self.setup_s = time.perf_counter() - t0
+        for module in ("render", "boxes", "reduce"):  # build now: compile time is not a search stage's
+            wp.load_module(f"perch_warp.kernels.{module}", device=self.device)
         self.hull_m = mesh.hull_points_m()
+        self.boxes = BoxProjector(self.hull_m, self.device)
+        self.setup_s = time.perf_counter() - t0
 
     def render(self, camera: Camera, T_m2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Full-image rendering of one pose: RGB float32 (H, W, 3) in [0, 1], mask bool (H, W)."""
@@ -222,7 +225,7 @@ class Engine:
         ks = self.weights.kernel_size
         t = time.perf_counter()
         R, tr = model_to_camera(table, resting, x, y, yaw)
-        boxes = project_boxes(camera, self.hull_m, R, tr)
+        boxes = self.boxes(camera, R, tr)  # = project_boxes(camera, self.hull_m, R, tr), on the device
         if np.any(boxes[:, 2] < 0):
             n_bad = int((boxes[:, 2] < 0).sum())
             raise PerchError(
@@ -249,10 +252,11 @@ class Engine:
                 photo.image, batch, gboxes[idx], photo.obs, photo.norm, photo.rarity
             )
             t = self._lap(timings, "features_score", t)
-            vals_np = vals.numpy()
-            t = self._lap(timings, "transfer", t)
-            scores[idx] = top_alpha_mean(vals_np, pt_off, cfg.alpha)[0]
+            # The same kernel on every device, so CPU and GPU runs take the same path to a score.
+            batch_scores, _ = top_alpha_mean_device(vals, pt_off, cfg.alpha)
             t = self._lap(timings, "reduction", t)
+            scores[idx] = batch_scores.numpy()  # one float per candidate, not every feature point
+            t = self._lap(timings, "transfer", t)
             if bar is not None:
                 bar.update(len(idx))
         return scores

@@ -9,6 +9,7 @@ import warp as wp
 
 from .features import FeatureWeights
 from .kernels.features import NOT_ON_MASK, feature_kernels
+from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
 from .render import RenderedBatch
 
 
@@ -74,15 +75,17 @@ class FeatureScorer:
         obs_feat: wp.array,
         obs_norm: wp.array,
         rarity: wp.array,
-    ) -> tuple[wp.array, np.ndarray]:
-        """similarity x rarity at every feature-grid point of each candidate's box (device array)
-        and the flat offsets (B + 1,) of each candidate's points; off-mask points hold NOT_ON_MASK."""
+    ) -> tuple[wp.array, wp.array]:
+        """similarity x rarity at every feature-grid point of each candidate's box and the flat
+        offsets (B + 1,) int32 of each candidate's points, both device arrays (they stay there
+        for `top_alpha_mean_device`); off-mask points hold NOT_ON_MASK."""
         gboxes = np.asarray(gboxes, dtype=np.int32)
         counts = gboxes[:, 2].astype(np.int64) * gboxes[:, 3]
         pt_off = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
         n_pts = int(pt_off[-1])
         with wp.ScopedDevice(self.device):
             out = wp.empty(n_pts, dtype=float)
+            offsets = wp.array(pt_off, dtype=wp.int32)
             wp.launch(
                 self.k_score,
                 dim=n_pts,
@@ -93,7 +96,7 @@ class FeatureScorer:
                     batch.pix_off,
                     batch.box,
                     wp.array(gboxes, dtype=wp.vec4i),
-                    wp.array(pt_off, dtype=wp.int32),
+                    offsets,
                     batch.n,
                     self.Wt,
                     self.bias,
@@ -106,7 +109,7 @@ class FeatureScorer:
                 ],
                 outputs=[out],
             )
-        return out, pt_off
+        return out, offsets
 
 
 def grid_boxes(boxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:
@@ -126,8 +129,21 @@ def grid_boxes(boxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:
     return out
 
 
+def top_alpha_mean_device(values: wp.array, offsets: wp.array, alpha: float) -> tuple[wp.array, wp.array]:
+    """`top_alpha_mean` on the values' device (kernels/reduce.py): scores (B,) float64 and n (B,) int32,
+    device arrays, so that one number per candidate crosses to the host instead of every point."""
+    n_cand = offsets.shape[0] - 1
+    with wp.ScopedDevice(values.device):
+        scores = wp.empty(n_cand, dtype=wp.float64)
+        n = wp.empty(n_cand, dtype=wp.int32)
+        if n_cand > 0:
+            wp.launch(top_alpha_mean_kernel, dim=n_cand, inputs=[values, offsets, float(alpha)], outputs=[scores, n])
+    return scores, n
+
+
 def top_alpha_mean(values: np.ndarray, offsets: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per candidate: mean of the top ceil(α n) of its n on-mask values, and n.
+    """Per candidate: mean of the top ceil(α n) of its n on-mask values, and n (the reference
+    for `top_alpha_mean_device`, which the engine runs).
 
     `values` is flat with candidate c at [offsets[c], offsets[c+1]); entries at or below
     NOT_ON_MASK / 2 are off the mask. Candidates with no on-mask point score -inf.

@@ -114,7 +114,7 @@ def test_candidate_scores_equal_numpy_reference(random_weights):
     )
     got = vals.numpy()
     ref = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity)
-    assert got.shape == ref.shape and pt_off[-1] == len(ref)
+    assert got.shape == ref.shape and pt_off.numpy()[-1] == len(ref)
     off = ref == NOT_ON_MASK
     assert np.array_equal(got == NOT_ON_MASK, off) and 0 < off.sum() < len(ref)
     assert (ref == 0.0).sum() > 5  # on-mask points beyond the feature grid were exercised

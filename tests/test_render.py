@@ -10,8 +10,8 @@ from scipy.spatial import ConvexHull
 
 from perch_warp.camera import Camera
 from perch_warp.demo import look_at_table, striped_cylinder, textured_box
-from perch_warp.render import MeshRenderer, project_boxes
-from perch_warp.table import RestingPose, model_to_camera
+from perch_warp.render import BoxProjector, MeshRenderer, project_boxes
+from perch_warp.table import RestingPose, model_to_camera, rot_z
 
 CAM = Camera(np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]]), 320, 240)
 TABLE = look_at_table(0.5, 45.0, 15.0)
@@ -108,3 +108,38 @@ def test_boxes_flag_candidates_outside_or_behind():
     assert boxes[2, 2] == -1
     # Overlapping the right edge: the box keeps the part beyond the image.
     assert boxes[3, 0] < CAM.width <= boxes[3, 0] + boxes[3, 2] - 1
+
+
+def test_device_boxes_equal_numpy_boxes(box):
+    """The engine's box kernel against project_boxes, integer for integer: table poses over and
+    beyond the image, random 3-D rotations, and candidates behind or too close to the camera."""
+    rng = np.random.default_rng(5)
+    hull = striped_cylinder(0.03, 0.08, np.random.default_rng(0)).hull_points_m()
+    rp = RestingPose.upright(box.vertices_m)
+    n = 3000
+    R_tab, t_tab = model_to_camera(
+        TABLE, rp, rng.uniform(-0.6, 0.6, n), rng.uniform(-0.6, 0.6, n), rng.uniform(0, 2 * math.pi, n)
+    )
+    q = rng.normal(size=(n, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    R_rand = np.stack(
+        [
+            np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y)], -1),
+            np.stack([2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x)], -1),
+            np.stack([2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y)], -1),
+        ],
+        -2,
+    )
+    t_rand = rng.uniform([-0.4, -0.3, -0.1], [0.4, 0.3, 0.8], (n, 3))
+    R = np.concatenate([R_tab, R_rand, rot_z(rng.uniform(0, 6, 4))])
+    # The last four: wholly in view, off to the side, behind, and straddling the near limit.
+    t = np.concatenate([t_tab, t_rand, [[0.0, 0.0, 0.5], [5.0, 0.0, 0.5], [0.0, 0.0, -0.5], [0.0, 0.0, 0.05]]])
+    for hull_m in (hull, box.hull_points_m()):
+        ref = project_boxes(CAM, hull_m, R, t)
+        got = BoxProjector(hull_m, DEVICE)(CAM, R, t)
+        assert got.dtype == np.int32 and got.shape == ref.shape
+        assert np.array_equal(got, ref)
+        inside, empty, behind = (ref[:, 2] > 0).sum(), (ref[:, 2] == 0).sum(), (ref[:, 2] < 0).sum()
+        assert min(inside, empty, behind) > 50  # every branch is exercised
+    assert BoxProjector(hull, DEVICE)(CAM, R[:0], t[:0]).shape == (0, 4)

@@ -1,9 +1,12 @@
 import math
 
 import numpy as np
+import pytest
+import warp as wp
+from _device import DEVICE
 from perch_warp.kernels.features import NOT_ON_MASK
 
-from perch_warp.score import alpha_count, top_alpha_mean
+from perch_warp.score import alpha_count, top_alpha_mean, top_alpha_mean_device
 
 
 def test_top_alpha_mean_matches_sorting_each_candidate():
@@ -29,3 +32,49 @@ def test_alpha_one_is_the_plain_mean_and_counts_round_up():
     got, _ = top_alpha_mean(np.array([1.0, 2.0, 3.0, 6.0]), np.array([0, 4]), 1.0)
     assert got[0] == 3.0
     assert alpha_count(0.5, 5) == 3 and alpha_count(0.5, 4) == 2 and alpha_count(0.01, 3) == 1
+
+
+def _segments_with_edge_cases(rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+    """Flat float32 values and offsets: random segments, heavy ties, and the corner cases up front."""
+    segments = [
+        np.zeros(0, np.float32),  # empty box
+        np.full(5, NOT_ON_MASK, np.float32),  # no point on the mask
+        np.array([0.25], np.float32),  # a single point
+        np.array([NOT_ON_MASK, -0.5, NOT_ON_MASK], np.float32),  # a single on-mask point
+        np.full(9, 0.125, np.float32),  # all tied
+        np.array([1.0, 1.0, -1.0, -1.0, 0.0, 0.0], np.float32),  # ties straddling any k
+        np.array([3e-38, 0.0, -3e-38, 1e-45, -1e-45], np.float32),  # tiny magnitudes: bisection near zero
+        np.array([2.0, 1.0, 0.0, -1.0, -2.0], np.float32),
+    ]
+    for n in rng.integers(1, 400, 150):
+        v = rng.normal(size=n).astype(np.float32)
+        if rng.random() < 0.5:
+            v = np.round(v, 1).astype(np.float32)  # few distinct values: many ties
+        v[rng.random(n) < 0.1] = 0.0  # silhouette beyond the photo's grid scores exactly 0
+        v[rng.random(n) < rng.random()] = NOT_ON_MASK
+        segments.append(v)
+    offsets = np.concatenate([[0], np.cumsum([len(s) for s in segments])]).astype(np.int32)
+    return np.concatenate(segments).astype(np.float32), offsets
+
+
+@pytest.mark.parametrize("alpha", [1e-6, 0.1, 0.3, 0.5, 0.77, 1.0])
+def test_device_top_alpha_mean_equals_numpy_reference(alpha):
+    values, offsets = _segments_with_edge_cases(np.random.default_rng(11))
+    ref, ref_n = top_alpha_mean(values, offsets, alpha)
+    scores, n = top_alpha_mean_device(
+        wp.array(values, dtype=wp.float32, device=DEVICE), wp.array(offsets, dtype=wp.int32, device=DEVICE), alpha
+    )
+    got, got_n = scores.numpy(), n.numpy()
+    assert got.dtype == np.float64 and np.array_equal(got_n, ref_n)
+    empty = ref_n == 0
+    assert empty[:2].all() and np.all(got[empty] == -np.inf)
+    assert np.allclose(got[~empty], ref[~empty], rtol=0, atol=1e-6)
+    # k = 1 is the maximum, k = n the plain mean: both cases occur above.
+    ks = np.array([alpha_count(alpha, int(m)) for m in ref_n[~empty]])
+    assert (ks == 1).any() and (ks == ref_n[~empty]).any()
+
+
+def test_device_top_alpha_mean_of_no_candidates():
+    values = wp.zeros(0, dtype=wp.float32, device=DEVICE)
+    scores, n = top_alpha_mean_device(values, wp.array(np.zeros(1, np.int32), device=DEVICE), 0.5)
+    assert scores.shape == (0,) and n.shape == (0,)
