@@ -551,14 +551,19 @@ def format_report(r: dict) -> str:
 # ----------------------------------------------------------------------------- command line
 
 
+def add_frame_arguments(parser) -> None:
+    """--dataset/--scene/--image/--obj: the reference frame and object, shared with tools/."""
+    parser.add_argument("--dataset", type=Path, default=None, help="BOP dataset folder (default: shared/data/ycbv)")
+    parser.add_argument("--scene", type=int, default=2, help="scene id (default: 2)")
+    parser.add_argument("--image", type=int, default=1, help="image id (default: 1)")
+    parser.add_argument("--obj", type=int, default=9, help="object id; its first instance in the image (default: 9)")
+
+
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `python -m perch_warp bench` (defaults: the reference workload)."""
     w = parser.add_argument_group("workload (default: the reference workload)")
-    w.add_argument("--dataset", type=Path, default=None, help="BOP dataset folder (default: shared/data/ycbv)")
+    add_frame_arguments(w)
     w.add_argument("--split", default="test", help="split folder (default: test)")
-    w.add_argument("--scene", type=int, default=2, help="scene id (default: 2)")
-    w.add_argument("--image", type=int, default=1, help="image id (default: 1)")
-    w.add_argument("--obj", type=int, default=9, help="object id; its first instance in the image (default: 9)")
     w.add_argument("--clip", type=float, default=1.0, help="visible table clipped to a square this wide, m (default 1)")
     w.add_argument("--xy-step", type=float, default=0.01, help="x/y step, m (default: 0.01)")
     w.add_argument("--yaw-step", type=float, default=0.1, help="yaw step over the full circle, rad (default: 0.1)")

@@ -30,7 +30,7 @@ from pathlib import Path
 
 import warp as wp
 
-from perch_warp.bench import default_dataset, device_name, git_commit, load_workload
+from perch_warp.bench import add_frame_arguments, default_dataset, device_name, git_commit, load_workload
 from perch_warp.engine import Engine, EngineConfig, default_device
 from perch_warp.errors import PerchError
 from perch_warp.features import load_feature_weights
@@ -100,10 +100,7 @@ def format_table(times: dict[str, list[float]], wall_ms: float) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset", type=Path, default=None, help="BOP dataset (default: shared/data/ycbv)")
-    ap.add_argument("--scene", type=int, default=2)
-    ap.add_argument("--image", type=int, default=1)
-    ap.add_argument("--obj", type=int, default=9)
+    add_frame_arguments(ap)
     ap.add_argument("--clip", type=float, default=0.1, help="visible table clipped to this square, m (default 0.1)")
     ap.add_argument("--xy-step", type=float, default=0.02, help="m (default 0.02)")
     ap.add_argument("--yaw-step", type=float, default=0.5, help="rad (default 0.5)")

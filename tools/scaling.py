@@ -31,7 +31,7 @@ import time
 from pathlib import Path
 
 from perch_warp import evaluate
-from perch_warp.bench import Workload, default_dataset, device_name, git_commit, load_workload
+from perch_warp.bench import Workload, add_frame_arguments, default_dataset, device_name, git_commit, load_workload
 from perch_warp.engine import Engine, EngineConfig, default_device
 from perch_warp.errors import PerchError
 from perch_warp.features import load_feature_weights
@@ -114,10 +114,7 @@ def plot(path: Path, rows: list[dict], title: str) -> None:
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--dataset", type=Path, default=None, help="BOP dataset (default: shared/data/ycbv)")
-    ap.add_argument("--scene", type=int, default=2)
-    ap.add_argument("--image", type=int, default=1)
-    ap.add_argument("--obj", type=int, default=9)
+    add_frame_arguments(ap)
     ap.add_argument("--device", default=None, help="cpu | cuda:0 (default: a GPU if Warp sees one)")
     ap.add_argument("--weights", default="caffe")
     ap.add_argument("--yaw-step", type=float, default=math.radians(30.0), help="rad (default: 30 deg)")
