@@ -44,6 +44,7 @@ STAGES = ("photo_features", "rarity", "candidates", "render", "features_score", 
 AGREEMENT_MIN = 0.999  # hit/miss agreement the microbenchmark and its peer must reach
 PEER_NOT_INSTALLED = "peer skipped: open3d not installed (pip install open3d)"
 PEER_NAME = "Open3D RaycastingScene (Embree, CPU)"
+ENV_COMMIT = "PERCH_WARP_COMMIT"  # names the commit where the checkout's .git cannot
 
 
 # ----------------------------------------------------------------------------- the workload
@@ -126,7 +127,13 @@ def load_workload(
 
 
 def git_commit(repo: Path | None = None) -> str:
-    """`git rev-parse --short HEAD` of the checkout holding this package; 'unknown' outside one."""
+    """`git rev-parse --short HEAD` of the checkout holding this package; 'unknown' outside one.
+
+    $PERCH_WARP_COMMIT overrides it: a copy of a working tree on another machine (a lent
+    GPU, say) may carry a `.git` that is not the code's, and its figures must name the right commit.
+    """
+    if os.environ.get(ENV_COMMIT):
+        return os.environ[ENV_COMMIT]
     repo = repo or Path(__file__).resolve().parent.parent
     try:
         out = subprocess.run(
@@ -138,7 +145,10 @@ def git_commit(repo: Path | None = None) -> str:
 
 
 def git_dirty(repo: Path | None = None) -> bool | None:
-    """Whether the checkout has uncommitted changes (figures then belong to no commit); None outside one."""
+    """Whether the checkout has uncommitted changes (figures then belong to no commit); None outside one
+    or when $PERCH_WARP_COMMIT names the commit."""
+    if os.environ.get(ENV_COMMIT):
+        return None
     repo = repo or Path(__file__).resolve().parent.parent
     try:
         out = subprocess.run(

@@ -165,3 +165,11 @@ def test_bench_bad_options_are_one_line_errors(shared, tmp_path, capsys):
         assert main(["bench", "--device", "cpu", "--out", str(tmp_path), *extra]) == 1
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and err[0].startswith("perch_warp: error: ") and words in err[0], err
+
+
+def test_commit_named_by_environment_overrides_git(monkeypatch):
+    monkeypatch.setenv(bench.ENV_COMMIT, "abc1234")
+    assert bench.git_commit() == "abc1234"
+    assert bench.git_dirty() is None
+    monkeypatch.delenv(bench.ENV_COMMIT)
+    assert bench.git_commit() != "abc1234"
