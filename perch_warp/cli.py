@@ -67,6 +67,12 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--batch-pixels", type=int, default=None, help="rendered pixels per batch (default: sized to the device)"
     )
+    g.add_argument(
+        "--cpu-threads",
+        type=int,
+        default=None,
+        help="CPU device: batches scored at once (default: one per available core; same scores for any number)",
+    )
 
 
 def add_search_arguments(p: argparse.ArgumentParser) -> None:
@@ -103,6 +109,7 @@ def engine_config_from_args(args: argparse.Namespace):
         coarse_yaw_rad=math.radians(args.coarse_yaw),
         beam=args.beam,
         image_scale=args.image_scale,
+        cpu_threads=args.cpu_threads,
     )
 
 
@@ -132,10 +139,16 @@ def build_engine(args: argparse.Namespace, mesh, quiet: bool = False):
     config = engine_config_from_args(args)
     weights = load_feature_weights(args.weights)
     device = args.device or default_device()
+    engine = Engine(mesh, weights, device, config)
     if not quiet:
         log(f"features: {weights.source}")
-        log(f"device: {device}" + ("" if args.device else " (chosen automatically; --device to override)"))
-    return Engine(mesh, weights, device, config)
+        threads = engine.cpu_threads()
+        log(
+            f"device: {device}"
+            + ("" if args.device else " (chosen automatically; --device to override)")
+            + (f", {threads} CPU threads (--cpu-threads to change)" if threads > 1 else "")
+        )
+    return engine
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:

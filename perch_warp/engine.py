@@ -9,7 +9,10 @@ one score per candidate come back to the host.
 from __future__ import annotations
 
 import math
+import os
 import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import contextmanager
 from dataclasses import dataclass
 
 import numpy as np
@@ -45,6 +48,9 @@ class EngineConfig:
     beam: int = 32  # coarse-to-fine: how many best candidates each finer level refines
     max_polish: int = 10  # coarse-to-fine: hill-climbing rounds on the final grid
     image_scale: float = 1.0  # search on the photo resized by this factor (camera scaled alike): cheaper on a CPU
+    # CPU device only: batches scored at once on this many threads (a Warp CPU launch runs on one
+    # core but releases the GIL). None: one per available core; 1: one batch after another.
+    cpu_threads: int | None = None
 
     def __post_init__(self) -> None:
         if not (0.0 < self.alpha <= 1.0) or not math.isfinite(self.alpha):
@@ -61,6 +67,10 @@ class EngineConfig:
             raise PerchError(f"search must be exhaustive or coarse-to-fine, got {self.search!r}")
         if self.beam < 1 or self.coarse_xy_m <= 0 or self.coarse_yaw_rad <= 0:
             raise PerchError("coarse-to-fine needs beam >= 1 and positive coarse steps")
+        if self.cpu_threads is not None and self.cpu_threads < 1:
+            raise PerchError(
+                f"cpu_threads (--cpu-threads) must be at least 1, or None for one per core; got {self.cpu_threads}"
+            )
 
 
 @dataclass
@@ -139,19 +149,22 @@ class Engine:
         self._n_rays = 0
         if cfg.image_scale != 1.0:
             image_rgb, camera = _rescale(check_rgb(image_rgb), camera, cfg.image_scale)
-        photo = self._photo(image_rgb, camera, timings)
         bar = None
         if progress:
             from tqdm import tqdm
 
             bar = tqdm(total=0, unit="pose", desc=f"search on {self.device}", leave=False)
+        t_start = time.perf_counter()
         try:
+            photo = self._photo(image_rgb, camera, timings)
             if cfg.search == "exhaustive":
                 x, y, yaw = space.candidates()
                 scores = self._score(photo, camera, table, resting, x, y, yaw, timings, bar)
                 levels: list = []
             else:
                 x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
+            # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _score).
+            wall_s = time.perf_counter() - t_start
         finally:
             if bar is not None:
                 bar.close()
@@ -165,7 +178,7 @@ class Engine:
             Candidate(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i]), pose_matrix(R[n], tr[n]))
             for n, i in enumerate(order)
         ]
-        timings["total"] = sum(timings.values())
+        timings["total"] = wall_s
         return Result(
             best=cands[0],
             top_k=cands,
@@ -185,6 +198,8 @@ class Engine:
                 "evaluated": len(x),
                 "batches": self._n_batches,
                 "rays": self._n_rays,  # pixels ray-cast by kernel #1 (the rendered boxes' areas)
+                # Batches scored at once; above 1 the per-batch stage timings are CPU seconds summed over threads.
+                "threads": self.cpu_threads(),
                 **({"levels": levels} if levels else {}),
             },
         )
@@ -239,27 +254,69 @@ class Engine:
         scores = np.full(len(x), -np.inf)
         budget = cfg.batch_pixels or _batch_pixels(self.device)
         sizes = boxes[live, 2].astype(np.int64) * boxes[live, 3]
-        self._n_rays += int(sizes.sum())
+        n_rays = int(sizes.sum())
+        self._n_rays += n_rays
+        threads = self.cpu_threads()
+        if threads > 1:
+            # Smaller batches so that every thread has some and those in flight together hold
+            # about one budget's pixels; not below 64 Ki pixels (launch overhead) unless the budget is.
+            budget = max(min(budget, 1 << 16), min(budget // threads, -(-n_rays // (2 * threads))))
+        batches = [live[lo:hi] for lo, hi in _split_by_budget(sizes, budget)]
+        self._n_batches += len(batches)
+        threads = min(threads, len(batches))
         if bar is not None:
             bar.total += len(live)
             bar.refresh()
-        for lo, hi in _split_by_budget(sizes, budget):
-            self._n_batches += 1
-            idx = live[lo:hi]
-            batch = self.renderer.render(camera, R[idx], tr[idx], boxes[idx])
-            t = self._lap(timings, "render", t)
-            vals, pt_off = self.scorer.score_points(
-                photo.image, batch, gboxes[idx], photo.obs, photo.norm, photo.rarity
-            )
-            t = self._lap(timings, "features_score", t)
-            # The same kernel on every device, so CPU and GPU runs take the same path to a score.
-            batch_scores, _ = top_alpha_mean_device(vals, pt_off, cfg.alpha)
-            t = self._lap(timings, "reduction", t)
-            scores[idx] = batch_scores.numpy()  # one float per candidate, not every feature point
-            t = self._lap(timings, "transfer", t)
+
+        def done(idx: np.ndarray, batch_scores: np.ndarray, laps: dict[str, float]) -> None:
+            scores[idx] = batch_scores  # by candidate index: the order batches finish in does not matter
+            for stage, s in laps.items():
+                timings[stage] = timings.get(stage, 0.0) + s
             if bar is not None:
                 bar.update(len(idx))
+
+        args = (photo, camera, R, tr, boxes, gboxes)
+        if threads <= 1:
+            for idx in batches:
+                done(idx, *self._score_batch(*args, idx))
+            return scores
+        # Each batch on a pool thread, its arrays its own (the renderer and scorer allocate per call
+        # and keep no per-call state). A stage's time is then the sum over threads of its per-batch
+        # times, i.e. CPU time, which can exceed the wall time; "total" stays wall time.
+        with _default_device(self.device), ThreadPoolExecutor(threads, thread_name_prefix="perch-score") as pool:
+            futures = {pool.submit(self._score_batch, *args, idx): idx for idx in batches}
+            try:
+                for f in as_completed(futures):
+                    done(futures[f], *f.result())
+            except BaseException:
+                for f in futures:
+                    f.cancel()
+                raise
         return scores
+
+    def cpu_threads(self) -> int:
+        """Threads scoring batches at once: 1 on a GPU (one stream), else the config's or one per core."""
+        if not wp.get_device(self.device).is_cpu:
+            return 1
+        if self.config.cpu_threads is not None:
+            return self.config.cpu_threads
+        return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+    def _score_batch(self, photo, camera, R, tr, boxes, gboxes, idx) -> tuple[np.ndarray, dict[str, float]]:
+        """Candidates `idx`: render (kernel #1) -> features x similarity x rarity (kernel #2) ->
+        top-α mean; their scores on the host and the seconds each stage took."""
+        laps: dict[str, float] = {}
+        t = time.perf_counter()
+        batch = self.renderer.render(camera, R[idx], tr[idx], boxes[idx])
+        t = self._lap(laps, "render", t)
+        vals, pt_off = self.scorer.score_points(photo.image, batch, gboxes[idx], photo.obs, photo.norm, photo.rarity)
+        t = self._lap(laps, "features_score", t)
+        # The same kernel on every device, so CPU and GPU runs take the same path to a score.
+        batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha)
+        t = self._lap(laps, "reduction", t)
+        out = batch_scores.numpy()  # one float per candidate, not every feature point
+        self._lap(laps, "transfer", t)
+        return out, laps
 
     def _coarse_to_fine(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
         """Pyramid search on the space's own grid: a coarse lattice, then around the best `beam`
@@ -341,6 +398,22 @@ class Engine:
         ii, rest = np.divmod(flat, ny * nk)
         jj, kk = np.divmod(rest, nk)
         return xs[ii], ys[jj], yaws[kk], sc, levels
+
+
+@contextmanager
+def _default_device(device: str):
+    """`device` as Warp's default device while the pool runs. wp.ScopedDevice (used by the renderer and
+    scorer) saves and restores one process-wide default, so threads entering and leaving it at once
+    would hand each other a stale default; with the default already `device` they only rewrite it."""
+    saved = wp.get_device()
+    if saved == wp.get_device(device):
+        yield
+        return
+    wp.set_device(device)
+    try:
+        yield
+    finally:
+        wp.set_device(saved)
 
 
 def _rescale(image_rgb: np.ndarray, camera: Camera, factor: float) -> tuple[np.ndarray, Camera]:

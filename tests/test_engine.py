@@ -60,6 +60,26 @@ def test_same_answer_twice_and_for_any_batch_size(scene, random_weights):
         assert np.allclose([k.score for k in other.top_k], [k.score for k in a.top_k], rtol=0, atol=1e-6)
 
 
+def test_cpu_threads_give_the_same_scores_as_one(scene, random_weights):
+    gx, gy, _ = scene.truth_xy_yaw
+    space = _space_around(gx, gy, half=0.02, yaw_step_deg=45.0)
+    args = (scene.image, scene.camera, scene.table, scene.resting, space)
+
+    def run(threads):
+        config = EngineConfig(batch_pixels=5000, top_k=len(space), cpu_threads=threads)
+        return Engine(scene.mesh, random_weights, DEVICE, config).estimate(*args)
+
+    one, two = run(1), run(2)
+    assert one.info["batches"] > 2 and (two.info["batches"], two.info["rays"]) == (
+        one.info["batches"],
+        one.info["rays"],
+    )
+    # Every candidate, bit for bit and in the same order.
+    assert [(k.x_m, k.y_m, k.yaw_rad, k.score) for k in two.top_k] == [
+        (k.x_m, k.y_m, k.yaw_rad, k.score) for k in one.top_k
+    ]
+
+
 def test_real_frame_potted_meat_can(shared, caffe_weights):
     """YCB-Video frame: the potted meat can (obj 9, standing on the sugar box) within 2 cm ADD-S."""
     d = shared / "data" / "ycbv" / "test" / "000002"
