@@ -64,6 +64,13 @@ def surface_color(
     return colors[i0] * bu + colors[i1] * bv + colors[i2] * w2
 
 
+@wp.func
+def pixel_ray_m(u: int, v: int, fx: float, fy: float, cx: float, cy: float, rot_c2m: wp.mat33) -> wp.vec3:
+    """Direction (model frame) of the ray through pixel (u, v). One function for every kernel
+    that casts pixel rays, so the silhouette bound (kernels/bound.py) hits exactly what the render hits."""
+    return rot_c2m * wp.vec3((float(u) - cx) / fx, (float(v) - cy) / fy, 1.0)
+
+
 @wp.kernel(enable_backward=False)
 def render_boxes(
     mesh: wp.uint64,
@@ -90,9 +97,7 @@ def render_boxes(
     local = i - pix_off[c]
     u = b[0] + local % b[2]
     v = b[1] + local // b[2]
-    d_c = wp.vec3((float(u) - cx) / fx, (float(v) - cy) / fy, 1.0)
-    d_m = rot_c2m[c] * d_c
-    q = wp.mesh_query_ray(mesh, origin_m[c], d_m, 1.0e6)
+    q = wp.mesh_query_ray(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6)
     if q.result:
         out_rgb[i] = surface_color(indices, uvs, texture, colors, use_texture, q.face, q.u, q.v)
         out_mask[i] = wp.uint8(1)

@@ -4,8 +4,8 @@ Reference workload (fixed, so figures from different commits and devices compare
 the real YCB-Video frame ycbv test scene 2 image 1, the potted meat can (obj 9), the
 visible table clipped to 1 m x 1 m (evaluate.py's region code: nothing derived from
 the ground truth), x/y step 1 cm, yaw step 0.1 rad over the full circle; height,
-roll and pitch from the ground truth as in `perch_warp eval`. One warm-up run
-(reported apart), then `--repeat` timed runs.
+roll and pitch from the ground truth as in `perch_warp eval`. `--warmup` untimed runs
+(default one, reported apart), then `--repeat` timed runs.
 
 Microbenchmark: one ray per pixel of the whole (search-scale) image through the
 engine's own `wp.Mesh`, for a few poses of the search grid that the image sees fully
@@ -40,7 +40,17 @@ from .mesh import ObjectMesh
 from .search_space import SearchSpace
 from .table import RestingPose, Table
 
-STAGES = ("photo_features", "rarity", "candidates", "render", "features_score", "transfer", "reduction", "total")
+STAGES = (
+    "photo_features",
+    "rarity",
+    "candidates",
+    "bound",
+    "render",
+    "features_score",
+    "transfer",
+    "reduction",
+    "total",
+)
 AGREEMENT_MIN = 0.999  # hit/miss agreement the microbenchmark and its peer must reach
 PEER_NOT_INSTALLED = "peer skipped: open3d not installed (pip install open3d)"
 PEER_NAME = "Open3D RaycastingScene (Embree, CPU)"
@@ -212,16 +222,18 @@ def device_peak_mib(device: str) -> tuple[float | None, str]:
 # ----------------------------------------------------------------------------- the search
 
 
-def time_search(engine, w: Workload, repeat: int) -> dict:
-    """One warm-up estimate, then `repeat` timed ones: per-stage times (s), throughput, the pose and its ADD-S."""
+def time_search(engine, w: Workload, repeat: int, warmup: int = 1) -> dict:
+    """`warmup` untimed estimates, then `repeat` timed ones: per-stage times (s), throughput, the pose and its ADD-S."""
     from .pose_error import add_s
 
-    if repeat < 1:
-        raise PerchError(f"--repeat must be at least 1, got {repeat}")
+    if repeat < 1 or warmup < 0:
+        raise PerchError(f"--repeat must be at least 1 and --warmup at least 0, got {repeat} and {warmup}")
     args = (w.image, w.camera, w.table, w.resting, w.space)
-    t0 = time.perf_counter()
-    res = engine.estimate(*args)
-    warm = {"wall_s": time.perf_counter() - t0, "timings_s": dict(res.timings_s)}
+    warm = None
+    for _ in range(warmup):
+        t0 = time.perf_counter()
+        res = engine.estimate(*args)
+        warm = {"wall_s": time.perf_counter() - t0, "timings_s": dict(res.timings_s)}
     runs = []
     for _ in range(repeat):
         t0 = time.perf_counter()
@@ -502,7 +514,9 @@ def format_report(r: dict) -> str:
         f"({r['search_image'][0]}x{r['search_image'][1]} px)",
         f"space         {s['space']}",
         f"setup         {r['setup_s']:.2f} s (engine: mesh upload, kernel build; not timed below)",
-        f"warm-up run   {s['warmup']['wall_s']:.3f} s (excluded from the figures below)",
+        f"warm-up run   {s['warmup']['wall_s']:.3f} s (excluded from the figures below)"
+        if s["warmup"]
+        else "warm-up run   none (--warmup 0: the kernels were built at setup)",
         "",
         f"{'stage':<16}{'mean s':>11}{'min s':>11}{'share':>8}   ({s['repeat']} timed run{'s' * (s['repeat'] > 1)})",
     ]
@@ -590,11 +604,17 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     m = parser.add_argument_group("engine")
     m.add_argument("--device", default=None, help="Warp device: cpu | cuda:0 (default: a GPU if Warp sees one)")
     m.add_argument("--weights", default="caffe", help="conv1 weights: caffe | torchvision | auto | FILE.npz")
-    m.add_argument("--search", default="exhaustive", choices=["exhaustive", "coarse-to-fine"])
+    m.add_argument("--search", default="exhaustive", choices=["exhaustive", "pruned", "coarse-to-fine"])
     m.add_argument("--image-scale", type=float, default=1.0, help="search on the photo resized by this factor")
     m.add_argument("--cpu-threads", type=int, default=None, help="CPU device: batches at once (default: one per core)")
     b = parser.add_argument_group("benchmark")
-    b.add_argument("--repeat", type=int, default=1, help="timed runs after one warm-up run (default: 1)")
+    b.add_argument("--repeat", type=int, default=1, help="timed runs after the warm-up runs (default: 1)")
+    b.add_argument(
+        "--warmup",
+        type=int,
+        default=1,
+        help="untimed runs first (default: 1; 0 for long CPU runs: setup builds kernels)",
+    )
     b.add_argument("--ray-poses", type=int, default=8, help="poses in the ray-casting microbenchmark (default: 8)")
     b.add_argument(
         "--min-time", type=float, default=1.0, help="microbenchmark: repeat launches for at least this many s (1)"
@@ -613,8 +633,11 @@ def run(args: argparse.Namespace) -> int:
     dataset = args.dataset or default_dataset()
     if dataset is None:
         raise PerchError("no --dataset given and shared/data/ycbv not found (set PERCH_WARP_SHARED)")
-    if args.repeat < 1 or args.ray_poses < 1:
-        raise PerchError(f"--repeat and --ray-poses must be at least 1, got {args.repeat} and {args.ray_poses}")
+    if args.repeat < 1 or args.ray_poses < 1 or args.warmup < 0:
+        raise PerchError(
+            f"--repeat and --ray-poses must be at least 1 and --warmup at least 0, "
+            f"got {args.repeat}, {args.ray_poses} and {args.warmup}"
+        )
     if not (math.isfinite(args.min_time) and args.min_time >= 0):
         raise PerchError(f"--min-time must be a non-negative number of seconds, got {args.min_time}")
     # validates before any work
@@ -626,7 +649,7 @@ def run(args: argparse.Namespace) -> int:
     threads = engine.cpu_threads()
     on = f"{device}" + (f" ({threads} CPU threads)" if threads > 1 else "")
     print(f"bench: {w.label}; {w.space.describe()} on {on}", file=sys.stderr, flush=True)
-    search = time_search(engine, w, args.repeat)
+    search = time_search(engine, w, args.repeat, args.warmup)
     host_peak = host_peak_mib()  # before the microbenchmark and peer, so it is the search's
     dev_peak, dev_note = device_peak_mib(device)
     raycast = time_raycast(engine, w, args.image_scale, args.ray_poses, args.min_time, peer=not args.no_peer)

@@ -51,8 +51,9 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--search",
         default="exhaustive",
-        choices=["exhaustive", "coarse-to-fine"],
-        help="score every grid pose, or a coarse lattice refined around the best (default: exhaustive)",
+        choices=["exhaustive", "pruned", "coarse-to-fine"],
+        help="score every grid pose; or only those whose silhouette bound can reach the best (same answer); "
+        "or a coarse lattice refined around the best (default: exhaustive)",
     )
     g.add_argument("--coarse-xy", type=float, default=0.02, help="coarse-to-fine: first lattice's x/y step, m")
     g.add_argument("--coarse-yaw", type=float, default=10.0, help="coarse-to-fine: first lattice's yaw step, deg")

@@ -8,6 +8,7 @@ one score per candidate come back to the host.
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import time
@@ -18,6 +19,7 @@ from dataclasses import dataclass
 import numpy as np
 import warp as wp
 
+from .bound import next_to_score, silhouette_bounds
 from .camera import Camera
 from .errors import PerchError
 from .features import FeatureWeights
@@ -29,6 +31,8 @@ from .result import Candidate, Result
 from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean_device
 from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera, pose_matrix
+
+SEARCHES = ("exhaustive", "pruned", "coarse-to-fine")
 
 
 @dataclass(frozen=True)
@@ -42,7 +46,9 @@ class EngineConfig:
     top_k: int = 5
     relu: bool = False
     batch_pixels: int | None = None  # rendered pixels per batch; None: sized to the device
-    search: str = "exhaustive"  # or "coarse-to-fine" (see Engine._coarse_to_fine)
+    # "exhaustive": score every grid pose; "pruned": the same top-k, scoring only candidates whose
+    # silhouette bound can reach it (Engine._pruned); "coarse-to-fine": a pyramid (Engine._coarse_to_fine)
+    search: str = "exhaustive"
     coarse_xy_m: float = 0.02  # coarse-to-fine: the first lattice's x/y step
     coarse_yaw_rad: float = math.radians(10.0)  # coarse-to-fine: the first lattice's yaw step
     beam: int = 32  # coarse-to-fine: how many best candidates each finer level refines
@@ -63,8 +69,8 @@ class EngineConfig:
             raise PerchError(f"top_k must be at least 1, got {self.top_k}")
         if not (0.0 < self.image_scale <= 1.0):
             raise PerchError(f"image scale must be in (0, 1], got {self.image_scale}")
-        if self.search not in ("exhaustive", "coarse-to-fine"):
-            raise PerchError(f"search must be exhaustive or coarse-to-fine, got {self.search!r}")
+        if self.search not in SEARCHES:
+            raise PerchError(f"search must be one of {', '.join(SEARCHES)}, got {self.search!r}")
         if self.beam < 1 or self.coarse_xy_m <= 0 or self.coarse_yaw_rad <= 0:
             raise PerchError("coarse-to-fine needs beam >= 1 and positive coarse steps")
         if self.cpu_threads is not None and self.cpu_threads < 1:
@@ -122,7 +128,7 @@ class Engine:
         self.renderer = MeshRenderer(mesh, self.device)
         self.scorer = FeatureScorer(weights, self.device, self.config.stride, self.config.relu)
         self.scorer.warm_up()
-        for module in ("render", "boxes", "reduce"):  # build now: compile time is not a search stage's
+        for module in ("render", "boxes", "reduce", "bound"):  # build now: compile time is not a search stage's
             wp.load_module(f"perch_warp.kernels.{module}", device=self.device)
         self.hull_m = mesh.hull_points_m()
         self.boxes = BoxProjector(self.hull_m, self.device)
@@ -147,6 +153,7 @@ class Engine:
         timings: dict[str, float] = {}
         self._n_batches = 0
         self._n_rays = 0
+        self._n_bound_rays = 0
         if cfg.image_scale != 1.0:
             image_rgb, camera = _rescale(check_rgb(image_rgb), camera, cfg.image_scale)
         bar = None
@@ -157,12 +164,18 @@ class Engine:
         t_start = time.perf_counter()
         try:
             photo = self._photo(image_rgb, camera, timings)
+            extra: dict = {}
             if cfg.search == "exhaustive":
                 x, y, yaw = space.candidates()
                 scores = self._score(photo, camera, table, resting, x, y, yaw, timings, bar)
-                levels: list = []
+                evaluated = len(x)
+            elif cfg.search == "pruned":
+                x, y, yaw, scores, extra = self._pruned(photo, camera, table, resting, space, timings, bar)
+                evaluated = extra["scored"]
             else:
                 x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
+                evaluated = len(x)
+                extra = {"levels": levels}
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _score).
             wall_s = time.perf_counter() - t_start
         finally:
@@ -195,12 +208,12 @@ class Engine:
                 "search": cfg.search,
                 "image_scale": cfg.image_scale,
                 "search_space": space.describe(),
-                "evaluated": len(x),
+                "evaluated": evaluated,  # candidates scored (rendered and compared)
                 "batches": self._n_batches,
                 "rays": self._n_rays,  # pixels ray-cast by kernel #1 (the rendered boxes' areas)
                 # Batches scored at once; above 1 the per-batch stage timings are CPU seconds summed over threads.
                 "threads": self.cpu_threads(),
-                **({"levels": levels} if levels else {}),
+                **extra,
             },
         )
 
@@ -234,10 +247,10 @@ class Engine:
         timings[stage] = timings.get(stage, 0.0) + (t1 - t0)
         return t1
 
-    def _score(self, photo, camera, table, resting, x, y, yaw, timings: dict, bar=None) -> np.ndarray:
-        """Score of each candidate (x_m, y_m, yaw_rad arrays); -inf where it shows no feature point."""
+    def _candidates(self, camera, table, resting, x, y, yaw, timings: dict):
+        """Poses (model-to-camera R, t in metres), pixel boxes, feature-grid boxes of candidates
+        (x_m, y_m, yaw_rad arrays) and the indices of those that show at least one feature point."""
         cfg = self.config
-        ks = self.weights.kernel_size
         t = time.perf_counter()
         R, tr = model_to_camera(table, resting, x, y, yaw)
         boxes = self.boxes(camera, R, tr)  # = project_boxes(camera, self.hull_m, R, tr), on the device
@@ -247,44 +260,66 @@ class Engine:
                 f"{n_bad} of {len(boxes)} candidate poses are behind or within {MIN_DEPTH_M} m of the camera: "
                 "check the table frame and the search ranges"
             )
-        gboxes = grid_boxes(boxes, ks, cfg.stride)
+        gboxes = grid_boxes(boxes, self.weights.kernel_size, cfg.stride)
         live = np.flatnonzero(gboxes[:, 2] * gboxes[:, 3] > 0)
-        t = self._lap(timings, "candidates", t)
+        self._lap(timings, "candidates", t)
+        return R, tr, boxes, gboxes, live
 
+    def _score(self, photo, camera, table, resting, x, y, yaw, timings: dict, bar=None) -> np.ndarray:
+        """Score of each candidate (x_m, y_m, yaw_rad arrays); -inf where it shows no feature point."""
+        R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
         scores = np.full(len(x), -np.inf)
+        self._score_some(photo, camera, R, tr, boxes, gboxes, live, scores, timings, bar)
+        return scores
+
+    def _score_some(self, photo, camera, R, tr, boxes, gboxes, idx, scores, timings: dict, bar=None) -> None:
+        """scores[idx] = the scores of candidates idx (render, features, top-α), in batches."""
+        sizes = boxes[idx, 2].astype(np.int64) * boxes[idx, 3]
+        self._n_rays += int(sizes.sum())
+        work = functools.partial(self._score_batch, photo, camera, R, tr, boxes, gboxes)
+        self._batched(work, idx, sizes, scores, timings, bar)
+
+    def _bound_some(self, photo, camera, R, tr, boxes, gboxes, idx, bounds, timings: dict) -> None:
+        """bounds[idx] = the silhouette bounds of candidates idx (perch_warp.bound), in batches."""
+        sizes = gboxes[idx, 2].astype(np.int64) * gboxes[idx, 3]  # one ray per feature point
+        self._n_bound_rays += int(sizes.sum())
+        work = functools.partial(self._bound_batch, photo, camera, R, tr, boxes, gboxes)
+        self._batched(work, idx, sizes, bounds, timings, None)
+
+    def _batched(self, work, idx: np.ndarray, sizes: np.ndarray, out: np.ndarray, timings: dict, bar) -> None:
+        """out[b] = work(b)[0] for batches b of idx (their sizes, in rays, within the device's budget),
+        on a thread pool on the CPU; work's stage seconds are added to timings."""
+        cfg = self.config
         budget = cfg.batch_pixels or _batch_pixels(self.device)
-        sizes = boxes[live, 2].astype(np.int64) * boxes[live, 3]
         n_rays = int(sizes.sum())
-        self._n_rays += n_rays
         threads = self.cpu_threads()
         if threads > 1:
             # Smaller batches so that every thread has some and those in flight together hold
             # about one budget's pixels; not below 64 Ki pixels (launch overhead) unless the budget is.
             budget = max(min(budget, 1 << 16), min(budget // threads, -(-n_rays // (2 * threads))))
-        batches = [live[lo:hi] for lo, hi in _split_by_budget(sizes, budget)]
+        batches = [idx[lo:hi] for lo, hi in _split_by_budget(sizes, budget)]
         self._n_batches += len(batches)
         threads = min(threads, len(batches))
         if bar is not None:
-            bar.total += len(live)
+            bar.total += len(idx)
             bar.refresh()
 
-        def done(idx: np.ndarray, batch_scores: np.ndarray, laps: dict[str, float]) -> None:
-            scores[idx] = batch_scores  # by candidate index: the order batches finish in does not matter
-            for stage, s in laps.items():
-                timings[stage] = timings.get(stage, 0.0) + s
+        def done(b: np.ndarray, values: np.ndarray, laps: dict[str, float]) -> None:
+            out[b] = values  # by candidate index: the order batches finish in does not matter
+            for stage, sec in laps.items():
+                timings[stage] = timings.get(stage, 0.0) + sec
             if bar is not None:
-                bar.update(len(idx))
+                bar.update(len(b))
 
-        args = (photo, camera, R, tr, boxes, gboxes)
         if threads <= 1:
-            for idx in batches:
-                done(idx, *self._score_batch(*args, idx))
-            return scores
+            for b in batches:
+                done(b, *work(b))
+            return
         # Each batch on a pool thread, its arrays its own (the renderer and scorer allocate per call
         # and keep no per-call state). A stage's time is then the sum over threads of its per-batch
         # times, i.e. CPU time, which can exceed the wall time; "total" stays wall time.
         with _default_device(self.device), ThreadPoolExecutor(threads, thread_name_prefix="perch-score") as pool:
-            futures = {pool.submit(self._score_batch, *args, idx): idx for idx in batches}
+            futures = {pool.submit(work, b): b for b in batches}
             try:
                 for f in as_completed(futures):
                     done(futures[f], *f.result())
@@ -292,7 +327,6 @@ class Engine:
                 for f in futures:
                     f.cancel()
                 raise
-        return scores
 
     def cpu_threads(self) -> int:
         """Threads scoring batches at once: 1 on a GPU (one stream), else the config's or one per core."""
@@ -317,6 +351,67 @@ class Engine:
         out = batch_scores.numpy()  # one float per candidate, not every feature point
         self._lap(laps, "transfer", t)
         return out, laps
+
+    def _bound_batch(self, photo, camera, R, tr, boxes, gboxes, idx) -> tuple[np.ndarray, dict[str, float]]:
+        """Candidates `idx`: upper bounds of their scores from their silhouettes, and the seconds taken."""
+        laps: dict[str, float] = {}
+        t = time.perf_counter()
+        out = silhouette_bounds(
+            self.renderer,
+            camera,
+            R[idx],
+            tr[idx],
+            boxes[idx],
+            gboxes[idx],
+            photo.rarity,
+            self.weights.kernel_size,
+            self.config.stride,
+            self.config.alpha,
+        )
+        self._lap(laps, "bound", t)
+        return out, laps
+
+    def _pruned(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
+        """Every grid candidate bounded by its silhouette (perch_warp.bound), then scored best bound
+        first, a round of batches at a time, until no remaining bound reaches the k-th best score:
+        the exhaustive search's top-k, scoring only the candidates that could be in it."""
+        cfg = self.config
+        x, y, yaw = space.candidates()
+        R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
+        bounds = np.full(len(x), -np.inf)
+        self._bound_some(photo, camera, R, tr, boxes, gboxes, live, bounds, timings)
+        # A candidate without feature points scores -inf whatever it shows: never worth scoring.
+        order = live[np.argsort(-bounds[live], kind="stable")]
+        order = order[np.isfinite(bounds[order])]
+        ranked = bounds[order]
+        scores = np.full(len(x), -np.inf)
+        if bar is not None:
+            bar.total += len(live)
+            bar.refresh()
+        # A round: about one budget of rays per thread, so that the first rounds set the k-th best
+        # score early and each later one stops as soon as the bounds fall below it.
+        per_round = (cfg.batch_pixels or _batch_pixels(self.device)) * self.cpu_threads()
+        k = min(cfg.top_k, len(order))
+        threshold = -np.inf
+        pos = 0
+        rounds = 0
+        while pos < len(order):
+            end = next_to_score(ranked, pos, threshold)
+            if end <= pos:
+                break
+            sizes = boxes[order[pos:end], 2].astype(np.int64) * boxes[order[pos:end], 3]
+            end = pos + max(1, int(np.searchsorted(np.cumsum(sizes), per_round, side="right")))
+            self._score_some(photo, camera, R, tr, boxes, gboxes, order[pos:end], scores, timings, None)
+            if bar is not None:
+                bar.update(end - pos)
+            pos = end
+            rounds += 1
+            if k > 0:
+                threshold = float(np.partition(scores[order[:pos]], pos - k)[pos - k]) if pos >= k else -np.inf
+        if bar is not None:
+            bar.update(len(live) - pos)
+        info = {"bounded": len(live), "scored": pos, "rounds": rounds, "bound_rays": self._n_bound_rays}
+        return x, y, yaw, scores, info
 
     def _coarse_to_fine(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
         """Pyramid search on the space's own grid: a coarse lattice, then around the best `beam`

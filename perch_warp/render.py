@@ -98,6 +98,14 @@ class RenderedBatch:
     n: int
 
 
+def camera_in_model(R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per pose, the camera-to-model rotation (N, 3, 3) float32 and the camera centre in the model
+    frame (N, 3) float32 metres: rays are cast in the model frame, through one BVH for all poses."""
+    R_c2m = np.ascontiguousarray(np.transpose(R_m2c, (0, 2, 1)), dtype=np.float32)
+    origin_m = -np.einsum("nij,nj->ni", R_c2m.astype(np.float64), t_m2c_m).astype(np.float32)
+    return R_c2m, origin_m
+
+
 class MeshRenderer:
     """A mesh and its appearance uploaded once to a Warp device (model frame, metres)."""
 
@@ -125,8 +133,7 @@ class MeshRenderer:
         sizes = boxes[:, 2].astype(np.int64) * boxes[:, 3]
         pix_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
         n_pix = int(pix_off[-1])
-        R_c2m = np.ascontiguousarray(np.transpose(R_m2c, (0, 2, 1)), dtype=np.float32)
-        origin_m = -np.einsum("nij,nj->ni", R_c2m.astype(np.float64), t_m2c_m).astype(np.float32)
+        R_c2m, origin_m = camera_in_model(R_m2c, t_m2c_m)
         with wp.ScopedDevice(self.device):
             batch = RenderedBatch(
                 rgb=wp.empty(n_pix, dtype=wp.vec3),

@@ -105,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--xy-step", type=float, default=0.02, help="m (default 0.02)")
     ap.add_argument("--yaw-step", type=float, default=0.5, help="rad (default 0.5)")
     ap.add_argument("--image-scale", type=float, default=1.0)
-    ap.add_argument("--search", default="exhaustive", choices=["exhaustive", "coarse-to-fine"])
+    ap.add_argument("--search", default="exhaustive", choices=["exhaustive", "pruned", "coarse-to-fine"])
     ap.add_argument("--device", default=None, help="cpu | cuda:0 (default: a GPU if Warp sees one)")
     ap.add_argument("--weights", default="caffe")
     ap.add_argument(

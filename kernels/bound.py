@@ -1,0 +1,59 @@
+"""Upper bound of a candidate's score from its silhouette alone (the pruned search).
+
+A feature point's score is cos x rarity with cos <= 1, so it is at most the photo's
+rarity there (0 beyond the photo, as in kernel #2), and the top-α mean is monotone in
+every value: the top-α mean of the rarity under a candidate's silhouette bounds its
+score from above. The silhouette is needed only at the feature points, one ray per
+point instead of one per box pixel (1/stride² of the rays), no texture, no features.
+
+Same flat layout and point order as kernel #2 (kernels/features.py: score_points), and
+the same pixel rays as kernel #1 (kernels/render.py: pixel_ray_m), so a point is on
+the silhouette here exactly when it is on the rendered mask there.
+"""
+
+import warp as wp
+
+from .features import NOT_ON_MASK
+from .render import find_candidate, pixel_ray_m
+
+
+@wp.kernel(enable_backward=False)
+def rarity_under_silhouette(
+    mesh: wp.uint64,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    rot_c2m: wp.array(dtype=wp.mat33),
+    origin_m: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4i),
+    gbox: wp.array(dtype=wp.vec4i),
+    pt_off: wp.array(dtype=wp.int32),
+    n_cand: int,
+    ks: int,
+    stride: int,
+    rarity: wp.array2d(dtype=float),
+    out: wp.array(dtype=float),
+):
+    i = wp.tid()
+    c = find_candidate(pt_off, n_cand, i)
+    g = gbox[c]
+    local = i - pt_off[c]
+    gx = g[0] + local % g[2]
+    gy = g[1] + local // g[2]
+    half = ks // 2
+    u = half + stride * gx
+    v = half + stride * gy
+    rb = box[c]
+    # Kernel #2 reads the mask only inside the rendered box; outside it a point is off the mask.
+    if u < rb[0] or u >= rb[0] + rb[2] or v < rb[1] or v >= rb[1] + rb[3]:
+        out[i] = NOT_ON_MASK
+        return
+    q = wp.mesh_query_ray(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6)
+    if not q.result:
+        out[i] = NOT_ON_MASK
+        return
+    if gx < 0 or gy < 0 or gx >= rarity.shape[1] or gy >= rarity.shape[0]:
+        out[i] = 0.0
+        return
+    out[i] = rarity[gy, gx]

@@ -1,0 +1,92 @@
+"""Upper bounds of candidates' scores from their silhouettes (the pruned search, kernels/bound.py).
+
+bound(c) = top-α mean of the photo's rarity at c's silhouette feature points >= score(c),
+because every point's score is cos x rarity with cos <= 1. Computing it costs one ray per
+feature point (1/stride² of a render) and no features, so the search can bound every
+candidate, score them best bound first, and stop once no bound reaches the k-th best score:
+the same top-k as scoring all of them (thesis §5.1 asks for pruning and prioritisation).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import warp as wp
+
+from .camera import Camera
+from .kernels.bound import rarity_under_silhouette
+from .render import MeshRenderer, camera_in_model
+from .score import top_alpha_mean_device
+
+# Scores are float32 cosines (which may exceed 1 by rounding) times rarity, averaged in float64:
+# a candidate is dropped only when its bound is below the k-th best score by more than this.
+BOUND_SLACK = 1e-5
+
+
+def silhouette_points(
+    renderer: MeshRenderer,
+    camera: Camera,
+    R_m2c: np.ndarray,
+    t_m2c_m: np.ndarray,
+    boxes: np.ndarray,
+    gboxes: np.ndarray,
+    rarity: wp.array,
+    kernel_size: int,
+    stride: int,
+) -> tuple[wp.array, wp.array]:
+    """Rarity at each candidate's silhouette feature points (NOT_ON_MASK off it, 0 beyond the photo)
+    and the flat offsets (B + 1,), device arrays in the layout of FeatureScorer.score_points.
+    Poses are model-to-camera (R (B, 3, 3), t (B, 3) metres); boxes are pixels, gboxes feature cells."""
+    gboxes = np.asarray(gboxes, dtype=np.int32)
+    counts = gboxes[:, 2].astype(np.int64) * gboxes[:, 3]
+    pt_off = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    n_pts = int(pt_off[-1])
+    R_c2m, origin_m = camera_in_model(R_m2c, t_m2c_m)
+    with wp.ScopedDevice(renderer.device):
+        out = wp.empty(n_pts, dtype=float)
+        offsets = wp.array(pt_off, dtype=wp.int32)
+        wp.launch(
+            rarity_under_silhouette,
+            dim=n_pts,
+            inputs=[
+                renderer.wp_mesh.id,
+                camera.fx,
+                camera.fy,
+                camera.cx,
+                camera.cy,
+                wp.array(R_c2m, dtype=wp.mat33),
+                wp.array(origin_m, dtype=wp.vec3),
+                wp.array(np.asarray(boxes, dtype=np.int32), dtype=wp.vec4i),
+                wp.array(gboxes, dtype=wp.vec4i),
+                offsets,
+                len(gboxes),
+                kernel_size,
+                stride,
+                rarity,
+            ],
+            outputs=[out],
+        )
+    return out, offsets
+
+
+def silhouette_bounds(
+    renderer: MeshRenderer,
+    camera: Camera,
+    R_m2c: np.ndarray,
+    t_m2c_m: np.ndarray,
+    boxes: np.ndarray,
+    gboxes: np.ndarray,
+    rarity: wp.array,
+    kernel_size: int,
+    stride: int,
+    alpha: float,
+) -> np.ndarray:
+    """Upper bound (B,) float64 of each candidate's score; -inf where no feature point is on its
+    silhouette (its score is then -inf too)."""
+    vals, offsets = silhouette_points(renderer, camera, R_m2c, t_m2c_m, boxes, gboxes, rarity, kernel_size, stride)
+    return top_alpha_mean_device(vals, offsets, alpha)[0].numpy()
+
+
+def next_to_score(bounds_sorted: np.ndarray, start: int, threshold: float) -> int:
+    """End of the run of candidates from `start` (sorted by bound, best first) that may still
+    reach `threshold`, the k-th best score so far."""
+    return start + int(np.searchsorted(-bounds_sorted[start:], -(threshold - BOUND_SLACK), side="right"))

@@ -1,0 +1,135 @@
+"""The silhouette bound (kernels/bound.py) and the pruned search built on it."""
+
+import math
+
+import numpy as np
+import pytest
+import warp as wp
+from _device import DEVICE
+from perch_warp.kernels.features import NOT_ON_MASK
+
+from perch_warp.bound import BOUND_SLACK, next_to_score, silhouette_bounds, silhouette_points
+from perch_warp.demo import demo_scene
+from perch_warp.engine import Engine, EngineConfig
+from perch_warp.score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean
+from perch_warp.search_space import SearchSpace
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return demo_scene(seed=1)
+
+
+def _space(scene, half=0.15, step=0.03, yaw_step_deg=30.0):
+    """Holds the truth, off centre, and enough bare table that some bounds fall below the best score."""
+    gx, gy, _ = scene.truth_xy_yaw
+    cx, cy = round(gx / step) * step + step, round(gy / step) * step - step
+    return SearchSpace(
+        (cx - half, cx + half), (cy - half, cy + half), step, (0, 2 * math.pi), math.radians(yaw_step_deg)
+    )
+
+
+def _candidates(engine, scene, space, camera):
+    """Poses, boxes and live candidates as the engine makes them, plus the photo's arrays."""
+    engine._n_batches = engine._n_rays = engine._n_bound_rays = 0
+    timings: dict = {}
+    photo = engine._photo(scene.image, camera, timings)
+    x, y, yaw = space.candidates()
+    R, t, boxes, gboxes, live = engine._candidates(camera, scene.table, scene.resting, x, y, yaw, timings)
+    return photo, R[live], t[live], boxes[live], gboxes[live]
+
+
+def test_points_are_the_rendered_masks_feature_points_with_their_rarity(scene, random_weights):
+    """The bound's silhouette is the mask kernel #2 scores on, point for point, and its values are
+    the photo's rarity there (0 beyond the photo): compared with the scorer's own output."""
+    engine = Engine(scene.mesh, random_weights, DEVICE)
+    # Some boxes run off the image so that points beyond the photo are exercised too.
+    space = SearchSpace((-0.3, 0.3), (-0.3, 0.3), 0.15, (0, 2 * math.pi), math.radians(60))
+    photo, R, t, boxes, gboxes = _candidates(engine, scene, space, scene.camera)
+    ks, s = random_weights.kernel_size, engine.config.stride
+    vals, off = silhouette_points(engine.renderer, scene.camera, R, t, boxes, gboxes, photo.rarity, ks, s)
+    batch = engine.renderer.render(scene.camera, R, t, boxes)
+    svals, soff = engine.scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.rarity)
+    v, sv = vals.numpy(), svals.numpy()
+    assert np.array_equal(off.numpy(), soff.numpy())
+    on = sv != NOT_ON_MASK
+    assert np.array_equal(v != NOT_ON_MASK, on) and on.sum() > 100 and (~on).sum() > 100
+
+    # Independent of both kernels: each point's grid cell, from the boxes alone.
+    rar = photo.rarity.numpy()
+    rows, cols = grid_shape(scene.camera.width, scene.camera.height, ks, s)
+    want, outside = [], []
+    for g in gboxes:
+        gy, gx = np.mgrid[g[1] : g[1] + g[3], g[0] : g[0] + g[2]]  # the kernels' row-major point order
+        inside = (gx >= 0) & (gy >= 0) & (gx < cols) & (gy < rows)
+        want.append(np.where(inside, rar[np.clip(gy, 0, rows - 1), np.clip(gx, 0, cols - 1)], 0.0).ravel())
+        outside.append(~inside.ravel())
+    want, outside = np.concatenate(want), np.concatenate(outside)
+    assert np.array_equal(v[on], want[on].astype(np.float32))
+    assert (on & outside).any() and np.all(v[on & outside] == 0.0)
+
+
+def test_bound_is_never_below_the_score(scene, random_weights):
+    engine = Engine(scene.mesh, random_weights, DEVICE)
+    photo, R, t, boxes, gboxes = _candidates(engine, scene, _space(scene), scene.camera)
+    ks, s, alpha = random_weights.kernel_size, engine.config.stride, engine.config.alpha
+    bounds = silhouette_bounds(engine.renderer, scene.camera, R, t, boxes, gboxes, photo.rarity, ks, s, alpha)
+    batch = engine.renderer.render(scene.camera, R, t, boxes)
+    vals, off = engine.scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.rarity)
+    scores, _ = top_alpha_mean(vals.numpy(), off.numpy(), alpha)
+    assert len(bounds) > 100 and np.all(np.isfinite(bounds) == np.isfinite(scores))
+    ok = np.isfinite(scores)
+    assert np.all(scores[ok] <= bounds[ok] + BOUND_SLACK)
+    # And it is a bound worth having: not everything reaches the best score.
+    assert np.mean(bounds[ok] >= scores[ok].max()) < 1.0
+
+
+def test_next_to_score_takes_the_bounds_that_can_still_reach_the_threshold():
+    ranked = np.array([0.9, 0.8, 0.7, 0.7, 0.5, 0.1])
+    assert next_to_score(ranked, 0, -np.inf) == 6
+    assert next_to_score(ranked, 1, 0.7) == 4  # ties with the threshold are scored
+    assert next_to_score(ranked, 4, 0.7) == 4
+    assert next_to_score(ranked, 0, 0.7 + BOUND_SLACK / 2) == 4  # within the slack: still scored
+    assert next_to_score(ranked, 0, 2.0) == 0
+
+
+@pytest.mark.parametrize("threads", [1, 2])
+def test_pruned_search_returns_the_exhaustive_top_k_scoring_fewer(scene, caffe_weights, threads):
+    space = _space(scene)
+    args = (scene.image, scene.camera, scene.table, scene.resting, space)
+
+    def run(search):
+        config = EngineConfig(search=search, top_k=5, batch_pixels=20000, cpu_threads=threads)
+        return Engine(scene.mesh, caffe_weights, DEVICE, config).estimate(*args)
+
+    full, pruned = run("exhaustive"), run("pruned")
+    assert [(k.x_m, k.y_m, k.yaw_rad, k.score) for k in pruned.top_k] == [
+        (k.x_m, k.y_m, k.yaw_rad, k.score) for k in full.top_k
+    ]
+    info = pruned.info
+    assert info["bounded"] == len(space) and info["scored"] == info["evaluated"] == pruned.n_scored
+    assert info["rounds"] > 1 and info["scored"] < len(space)
+    assert info["bound_rays"] > 0 and info["rays"] < full.info["rays"]
+    assert "bound" in pruned.timings_s
+
+
+def test_bound_kernel_runs_on_empty_input(random_weights):
+    """No candidates: no launch, no error (a batch can come out empty at the end of a round)."""
+    scene = demo_scene(seed=1)
+    engine = Engine(scene.mesh, random_weights, DEVICE)
+    scorer = FeatureScorer(random_weights, DEVICE, 4)
+    rarity = wp.zeros((2, 2), dtype=float, device=DEVICE)
+    empty = np.zeros((0, 4), np.int32)
+    out = silhouette_bounds(
+        engine.renderer,
+        scene.camera,
+        np.zeros((0, 3, 3)),
+        np.zeros((0, 3)),
+        empty,
+        grid_boxes(empty, 11, 4),
+        rarity,
+        scorer.ks,
+        4,
+        0.5,
+    )
+    assert out.shape == (0,)
