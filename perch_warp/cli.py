@@ -266,6 +266,7 @@ def run_estimate(args: argparse.Namespace) -> int:
         f"score {b.score:.4f}"
     )
     print("time: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items()))
+    print(search_summary(result))
     if truth is not None:
         from .pose_error import add, adi
 
@@ -308,6 +309,19 @@ def run_estimate(args: argparse.Namespace) -> int:
             lines.append(f"ground truth (green): ADD-S {out['truth']['adds_m'] * 100:.2f} cm")
         save_png(args.overlay, caption(pic, lines))
     return 0
+
+
+def search_summary(result) -> str:
+    """One line: how many of the space's candidates the search scored, and why not all."""
+    info = result.info
+    line = f"search: {info['search']}, scored {info['evaluated']:,} of {result.n_candidates:,} candidates"
+    if info["search"] == "pruned":
+        line += (
+            f" ({info['bounded']:,} bounded by their silhouettes; the rest cannot reach the top {len(result.top_k)})"
+        )
+    elif info["search"] == "coarse-to-fine":
+        line += " (a pyramid: may miss the exhaustive optimum)"
+    return line
 
 
 # --- entry point --------------------------------------------------------------------------------

@@ -50,7 +50,32 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     assert res["truth"]["adds_m"] < 0.02 and len(res["top_k"]) == 5
     assert set(res["timings_s"]) >= {"render", "features_score", "rarity", "reduction", "total"}
     assert Image.open(png).size[0] == sc.camera.width
-    assert "pose: x =" in capsys.readouterr().out
+    stdout = capsys.readouterr().out
+    assert "pose: x =" in stdout and f"search: exhaustive, scored {res['n_candidates']:,} of" in stdout
+
+    # The pruned search, on two CPU threads: the same pose, and it says what it scored.
+    out2 = tmp_path / "r2.json"
+    assert (
+        main(
+            _args(
+                d,
+                *_search_around(sc),
+                "--weights",
+                "caffe",
+                "--out",
+                str(out2),
+                "--search",
+                "pruned",
+                "--cpu-threads",
+                "2",
+            )
+        )
+        == 0
+    )
+    res2 = json.loads(out2.read_text())
+    keys = ("x_m", "y_m", "yaw_rad", "score")  # (the 4x4 transforms agree to rounding, not bit for bit)
+    assert [[c[k] for k in keys] for c in res2["top_k"]] == [[c[k] for k in keys] for c in res["top_k"]]
+    assert "search: pruned, scored " in capsys.readouterr().out and res2["bounded"] == res["n_candidates"]
 
 
 def _error(capsys, args) -> str:
