@@ -217,6 +217,23 @@ class Engine:
             },
         )
 
+    def bounds_and_scores(
+        self, image_rgb: np.ndarray, camera: Camera, table: Table, resting: RestingPose, space: SearchSpace
+    ) -> dict[str, np.ndarray]:
+        """Every candidate's silhouette bound and score (analysis of the pruned search; nothing pruned):
+        arrays x_m, y_m, yaw_rad (table frame), bound, score; -inf where a candidate shows no feature point."""
+        self._n_batches = self._n_rays = self._n_bound_rays = 0
+        timings: dict[str, float] = {}
+        if self.config.image_scale != 1.0:
+            image_rgb, camera = _rescale(check_rgb(image_rgb), camera, self.config.image_scale)
+        photo = self._photo(image_rgb, camera, timings)
+        x, y, yaw = space.candidates()
+        R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
+        bounds, scores = np.full(len(x), -np.inf), np.full(len(x), -np.inf)
+        self._bound_some(photo, camera, R, tr, boxes, gboxes, live, bounds, timings)
+        self._score_some(photo, camera, R, tr, boxes, gboxes, live, scores, timings)
+        return {"x_m": x, "y_m": y, "yaw_rad": yaw, "bound": bounds, "score": scores}
+
     def _photo(self, image_rgb: np.ndarray, camera: Camera, timings: dict) -> _Photo:
         """The photo's feature map, norms and rarity, on the device (once per photo)."""
         cfg = self.config
