@@ -256,6 +256,7 @@ class EngineEstimator:
         T = np.asarray(res.T_m2c, dtype=np.float64)
         details = {
             "n_candidates": int(res.n_candidates),
+            "n_evaluated": int(res.info.get("evaluated", res.n_candidates)),  # scored: fewer when pruned
             "timings_s": {k: float(v) for k, v in res.timings.items()},
             "device": res.device,
             "top_k": [{"x_m": c.x_m, "y_m": c.y_m, "yaw_rad": c.yaw_rad, "score": c.score} for c in res.top_k],
@@ -631,6 +632,7 @@ def compute_errors(selection: Selection, done: dict, tables: TableCache, geometr
                     "table": how,
                     "gt_in_region": d.details.get("gt_in_region"),
                     "n_candidates": d.details.get("n_candidates"),
+                    "n_evaluated": d.details.get("n_evaluated"),
                     "R_est": d.R,
                     "t_est_m": d.t_m,
                     "R_gt": t.R_gt,
@@ -662,6 +664,7 @@ _PER_TARGET_COLUMNS = [
     "table",
     "gt_in_region",
     "n_candidates",
+    "n_evaluated",
 ]
 
 

@@ -5,7 +5,8 @@
 Reads each run's per_target.csv, pairs targets by (scene, image, instance), and prints how
 many have the same pose (x, y within --tol-m, yaw within --tol-deg: both runs search the same
 grid, so equal poses are equal to rounding), and for the others which run's pose scores
-higher (the reference's higher: the other search missed the maximum). Exit 1 on bad input.
+higher (the reference's higher: the other search missed the maximum), then each run's mean
+time per target and, where recorded, the share of candidates it scored. Exit 1 on bad input.
 """
 
 from __future__ import annotations
@@ -58,8 +59,20 @@ def main(argv: list[str] | None = None) -> int:
     print(f"same pose              {same} / {len(keys)} ({100 * same / len(keys):.1f} %)")
     print(f"reference scores higher {ref_higher} (the other search missed the maximum)")
     print(f"other scores higher     {other_higher}")
+    for name, run in (("reference", a), ("other", b)):
+        rows = [run[k] for k in keys]
+        line = f"{name:<10} mean {_mean(rows, 'time_s'):.2f} s per target"
+        if all(r.get("n_evaluated") for r in rows):  # eval runs since the pruned search record it
+            frac = [float(r["n_evaluated"]) / float(r["n_candidates"]) for r in rows]
+            line += f", scored {100 * sum(frac) / len(frac):.1f} % of the candidates on average"
+        print(line)
     print("\n".join(diff))
     return 0
+
+
+def _mean(rows: list[dict], key: str) -> float:
+    vals = [float(r[key]) for r in rows if r.get(key)]
+    return sum(vals) / len(vals) if vals else float("nan")
 
 
 if __name__ == "__main__":
