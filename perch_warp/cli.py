@@ -316,9 +316,11 @@ def search_summary(result) -> str:
     info = result.info
     line = f"search: {info['search']}, scored {info['evaluated']:,} of {result.n_candidates:,} candidates"
     if info["search"] == "pruned":
-        line += (
-            f" ({info['bounded']:,} bounded by their silhouettes; the rest cannot reach the top {len(result.top_k)})"
-        )
+        k = len(result.top_k)
+        if info["evaluated"] < info["bounded"]:
+            line += f" ({info['bounded']:,} bounded by their silhouettes; the rest cannot reach the top {k})"
+        else:
+            line += f" (every silhouette bound reached the top {k}: nothing pruned)"
     elif info["search"] == "coarse-to-fine":
         line += " (a pyramid: may miss the exhaustive optimum)"
     return line
