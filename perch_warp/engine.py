@@ -54,6 +54,9 @@ class EngineConfig:
     beam: int = 32  # coarse-to-fine: how many best candidates each finer level refines
     max_polish: int = 10  # coarse-to-fine: hill-climbing rounds on the final grid
     image_scale: float = 1.0  # search on the photo resized by this factor (camera scaled alike): cheaper on a CPU
+    # coarse-to-fine: leave out lattice points whose silhouette bound cannot reach the beam (perch_warp.bound);
+    # the same result as without, scoring fewer
+    pyramid_bounds: bool = True
     # CPU device only: batches scored at once on this many threads (a Warp CPU launch runs on one
     # core but releases the GIL). None: one per available core; 1: one batch after another.
     cpu_threads: int | None = None
@@ -390,26 +393,43 @@ class Engine:
 
     def _pruned(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
         """Every grid candidate bounded by its silhouette (perch_warp.bound), then scored best bound
-        first, a round of batches at a time, until no remaining bound reaches the k-th best score:
-        the exhaustive search's top-k, scoring only the candidates that could be in it."""
-        cfg = self.config
+        first until no remaining bound reaches the k-th best score: the exhaustive search's top-k,
+        scoring only the candidates that could be in it."""
         x, y, yaw = space.candidates()
         R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
-        bounds = np.full(len(x), -np.inf)
-        self._bound_some(photo, camera, R, tr, boxes, gboxes, live, bounds, timings)
-        # A candidate without feature points scores -inf whatever it shows: never worth scoring.
-        order = live[np.argsort(-bounds[live], kind="stable")]
-        order = order[np.isfinite(bounds[order])]
-        ranked = bounds[order]
         scores = np.full(len(x), -np.inf)
         if bar is not None:
             bar.total += len(live)
             bar.refresh()
-        # A round: about one budget of rays per thread, so that the first rounds set the k-th best
-        # score early and each later one stops as soon as the bounds fall below it.
+        k = self.config.top_k
+
+        def kth_best(scored: np.ndarray) -> float:
+            return _kth_largest(scores[scored], k)
+
+        scored, rounds, _ = self._best_first(photo, camera, R, tr, boxes, gboxes, live, scores, timings, kth_best, bar)
+        n = len(scored)
+        if bar is not None:
+            bar.update(len(live) - n)
+        info = {"bounded": len(live), "scored": n, "rounds": rounds, "bound_rays": self._n_bound_rays}
+        return x, y, yaw, scores, info
+
+    def _best_first(self, photo, camera, R, tr, boxes, gboxes, idx, scores, timings, kth_best, bar=None):
+        """Bound candidates idx, then score them best bound first, a round of batches at a time,
+        until no remaining bound reaches kth_best(indices scored so far). Returns the indices scored,
+        the number of rounds and the bounds (-inf where not bounded). scores[i] stays -inf for the
+        others: those without feature points (whose score is -inf) and those ruled out (whose score
+        is below the final threshold)."""
+        cfg = self.config
+        bounds = np.full(len(scores), -np.inf)
+        self._bound_some(photo, camera, R, tr, boxes, gboxes, idx, bounds, timings)
+        # A candidate without feature points scores -inf whatever it shows: never worth scoring.
+        order = idx[np.argsort(-bounds[idx], kind="stable")]
+        order = order[np.isfinite(bounds[order])]
+        ranked = bounds[order]
+        # A round: about one budget of rays per thread, so that the first rounds set the threshold
+        # early and each later one stops as soon as the bounds fall below it.
         per_round = (cfg.batch_pixels or _batch_pixels(self.device)) * self.cpu_threads()
-        k = min(cfg.top_k, len(order))
-        threshold = -np.inf
+        threshold = kth_best(order[:0])
         pos = 0
         rounds = 0
         while pos < len(order):
@@ -423,12 +443,8 @@ class Engine:
                 bar.update(end - pos)
             pos = end
             rounds += 1
-            if k > 0:
-                threshold = float(np.partition(scores[order[:pos]], pos - k)[pos - k]) if pos >= k else -np.inf
-        if bar is not None:
-            bar.update(len(live) - pos)
-        info = {"bounded": len(live), "scored": pos, "rounds": rounds, "bound_rays": self._n_bound_rays}
-        return x, y, yaw, scores, info
+            threshold = kth_best(order[:pos])
+        return order[:pos], rounds, bounds
 
     def _coarse_to_fine(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
         """Pyramid search on the space's own grid: a coarse lattice, then around the best `beam`
@@ -444,19 +460,44 @@ class Engine:
         while steps[-1] != (1, 1):
             steps.append((max(1, steps[-1][0] // 2), max(1, steps[-1][1] // 2)))
         memo: dict[int, float] = {}
+        # Grid points whose silhouette bound fell below the beam's threshold: they can never enter
+        # the beam (the threshold only rises as memo grows), so they are neither scored nor asked again.
+        ruled_out: set[int] = set()
+        k_beam = max(cfg.beam, cfg.top_k)
 
         def run(ijk: np.ndarray) -> None:
             i, j, k = ijk.T
             k = k % nk if wrap else k
             ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nk)
             flat = np.unique((i[ok] * ny + j[ok]) * nk + k[ok])
-            flat = np.array([f for f in flat.tolist() if f not in memo], dtype=np.int64)
+            flat = np.array([f for f in flat.tolist() if f not in memo and f not in ruled_out], dtype=np.int64)
             if len(flat) == 0:
                 return
             ii, rest = np.divmod(flat, ny * nk)
             jj, kk = np.divmod(rest, nk)
-            sc = self._score(photo, camera, table, resting, xs[ii], ys[jj], yaws[kk], timings, bar)
-            memo.update(zip(flat.tolist(), sc.tolist(), strict=True))
+            if not cfg.pyramid_bounds:
+                sc = self._score(photo, camera, table, resting, xs[ii], ys[jj], yaws[kk], timings, bar)
+                memo.update(zip(flat.tolist(), sc.tolist(), strict=True))
+                return
+            R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, xs[ii], ys[jj], yaws[kk], timings)
+            sc = np.full(len(flat), -np.inf)
+            known = np.fromiter(memo.values(), dtype=np.float64, count=len(memo))
+
+            def kth_best(scored: np.ndarray) -> float:
+                return _kth_largest(np.concatenate([known, sc[scored]]), k_beam)
+
+            if bar is not None:
+                bar.total += len(live)
+                bar.refresh()
+            scored, _, bounds = self._best_first(photo, camera, R, tr, boxes, gboxes, live, sc, timings, kth_best, bar)
+            # Memoised: the scored, and those whose score is -inf because no feature point shows (as
+            # without bounds). Ruled out: a finite bound below the threshold, so a score below it too.
+            dropped = np.isfinite(bounds)
+            dropped[scored] = False
+            memo.update(zip(flat[~dropped].tolist(), sc[~dropped].tolist(), strict=True))
+            ruled_out.update(flat[dropped].tolist())
+            if bar is not None:
+                bar.update(int(dropped.sum()))
 
         def best() -> np.ndarray:
             flat = np.fromiter(memo.keys(), dtype=np.int64, count=len(memo))
@@ -539,6 +580,12 @@ def _rescale(image_rgb: np.ndarray, camera: Camera, factor: float) -> tuple[np.n
     small = camera.scaled(factor)
     img = Image.fromarray(image_rgb).resize((small.width, small.height), Image.Resampling.BOX)
     return np.asarray(img), small
+
+
+def _kth_largest(values: np.ndarray, k: int) -> float:
+    """The k-th largest of values; -inf when there are fewer than k (nothing can be ruled out yet)."""
+    n = len(values)
+    return float(np.partition(values, n - k)[n - k]) if 0 < k <= n else -np.inf
 
 
 def _split_by_budget(sizes: np.ndarray, budget: int) -> list[tuple[int, int]]:
