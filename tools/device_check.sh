@@ -18,8 +18,11 @@ if [ -z "${PERCH_WARP_COMMIT:-}" ]; then
 fi
 export PERCH_WARP_COMMIT PERCH_WARP_SHARED=${PERCH_WARP_SHARED:-../shared}
 mkdir -p "$OUT"
-# The installed package maps perch_warp.kernels onto kernels/; a plain checkout needs the link.
-[ -e perch_warp/kernels ] || ln -s ../kernels perch_warp/kernels
+# The installed package maps perch_warp.kernels onto kernels/; a plain checkout needs a link,
+# removed again at the end (a stray link changes how ruff sorts imports here).
+if ! python3 -c "import perch_warp.kernels" 2>/dev/null; then
+  ln -s ../kernels perch_warp/kernels && trap 'rm -f perch_warp/kernels' EXIT
+fi
 
 step() {
   local name=$1; shift
