@@ -354,7 +354,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .cli import build_engine, log, write_json_atomic
+    from .cli import build_engine, log, timing_line, write_json_atomic
     from .image import save_png
     from .overlay import TRUTH_COLOR, caption, mask_contour, overlay_rendering
     from .pose_error import adi
@@ -414,7 +414,7 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"error: ADD-S {adds * 100:.2f} cm, yaw {yaw_err:.1f} deg -> {'within' if ok else 'NOT within'} one grid step"
     )
-    print("time: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items()))
+    print(timing_line(result))
     print(f"wrote {out}/overlay.png, {out}/result.json and the scene files; rerun the search with:")
     print(
         f"  python -m perch_warp {out}/rgb/000001.png --mesh {out}/models/obj_000001.obj "

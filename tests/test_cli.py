@@ -131,3 +131,14 @@ def test_bad_inputs_give_one_line_errors(scene_dir, random_weights, tmp_path, ca
     far = ["--x-range", "5", "5.1", "--y-range", "5", "5.1"]
     assert "outside the image" in _error(capsys, _args(d, *w, *far))
     assert "unknown --weights" in _error(capsys, _args(d, "--weights", "vgg"))
+
+
+def test_timing_line_says_when_stage_times_are_summed_over_threads():
+    from types import SimpleNamespace
+
+    from perch_warp.cli import timing_line
+
+    one = SimpleNamespace(timings_s={"render": 3.0, "total": 3.5}, info={"threads": 1})
+    two = SimpleNamespace(timings_s={"render": 3.0, "total": 1.75}, info={"threads": 2})
+    assert timing_line(one) == "time: render 3.00 s, total 3.50 s"
+    assert timing_line(two).endswith("(batch stages: CPU s summed over 2 threads; total: wall)")
