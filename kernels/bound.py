@@ -13,8 +13,8 @@ the silhouette here exactly when it is on the rendered mask there.
 
 import warp as wp
 
-from .features import NOT_ON_MASK
-from .render import find_candidate, pixel_ray_m
+from .features import NOT_ON_MASK, feature_point, in_box
+from .render import pixel_ray_m
 
 
 @wp.kernel(enable_backward=False)
@@ -36,24 +36,17 @@ def rarity_under_silhouette(
     out: wp.array(dtype=float),
 ):
     i = wp.tid()
-    c = find_candidate(pt_off, n_cand, i)
-    g = gbox[c]
-    local = i - pt_off[c]
-    gx = g[0] + local % g[2]
-    gy = g[1] + local // g[2]
-    half = ks // 2
-    u = half + stride * gx
-    v = half + stride * gy
+    c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
     rb = box[c]
     # Kernel #2 reads the mask only inside the rendered box; outside it a point is off the mask.
-    if u < rb[0] or u >= rb[0] + rb[2] or v < rb[1] or v >= rb[1] + rb[3]:
+    if not in_box(rb, u, v):
         out[i] = NOT_ON_MASK
         return
     q = wp.mesh_query_ray(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6)
     if not q.result:
         out[i] = NOT_ON_MASK
         return
-    if gx < 0 or gy < 0 or gx >= rarity.shape[1] or gy >= rarity.shape[0]:
+    if not in_box(wp.vec4i(0, 0, rarity.shape[1], rarity.shape[0]), gx, gy):  # beyond the photo, as in kernel #2
         out[i] = 0.0
         return
     out[i] = rarity[gy, gx]

@@ -29,6 +29,28 @@ from .render import find_candidate
 NOT_ON_MASK = -1.0e30
 
 
+@wp.func
+def feature_point(
+    pt_off: wp.array(dtype=wp.int32), n_cand: int, gbox: wp.array(dtype=wp.vec4i), ks: int, stride: int, i: int
+):
+    """Flat feature point i: its candidate c, grid cell (gx, gy) and pixel (u, v). Candidate c owns
+    points [pt_off[c], pt_off[c+1]), its grid box gbox[c] = (gx0, gy0, gw, gh) row by row; kernel #2
+    and the silhouette bound (kernels/bound.py) both walk the points in this order."""
+    c = find_candidate(pt_off, n_cand, i)
+    g = gbox[c]
+    local = i - pt_off[c]
+    gx = g[0] + local % g[2]
+    gy = g[1] + local // g[2]
+    half = ks // 2
+    return c, gx, gy, half + stride * gx, half + stride * gy
+
+
+@wp.func
+def in_box(b: wp.vec4i, x: int, y: int) -> bool:
+    """Pixel (x, y) inside the box (x0, y0, w, h)."""
+    return x >= b[0] and x < b[0] + b[2] and y >= b[1] and y < b[1] + b[3]
+
+
 @functools.cache
 def feature_kernels(C: int):
     """(observed_features, score_points) kernels for C output channels."""
@@ -55,7 +77,7 @@ def feature_kernels(C: int):
             for dx in range(ks):
                 x = u + dx - half
                 p = image[y, x]
-                if x >= rb[0] and x < rb[0] + rb[2] and y >= rb[1] and y < rb[1] + rb[3]:
+                if in_box(rb, x, y):
                     j = roff + (y - rb[1]) * rb[2] + (x - rb[0])
                     if mask[j] != wp.uint8(0):
                         p = rgb[j]
@@ -106,23 +128,16 @@ def feature_kernels(C: int):
         out: wp.array(dtype=float),
     ):
         i = wp.tid()
-        c = find_candidate(pt_off, n_cand, i)
-        g = gbox[c]  # gx0, gy0, gw, gh in feature-grid cells
-        local = i - pt_off[c]
-        gx = g[0] + local % g[2]
-        gy = g[1] + local // g[2]
-        half = ks // 2
-        u = half + stride * gx
-        v = half + stride * gy
+        c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
         rb = box[c]
         on_mask = int(0)
-        if u >= rb[0] and u < rb[0] + rb[2] and v >= rb[1] and v < rb[1] + rb[3]:
+        if in_box(rb, u, v):
             if mask[pix_off[c] + (v - rb[1]) * rb[2] + (u - rb[0])] != wp.uint8(0):
                 on_mask = 1
         if on_mask == 0:
             out[i] = NOT_ON_MASK
             return
-        if gx < 0 or gy < 0 or gx >= obs_feat.shape[1] or gy >= obs_feat.shape[0]:
+        if not in_box(wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0]), gx, gy):
             # Silhouette beyond the photo's feature grid: part of the object, but nothing to compare.
             out[i] = 0.0
             return

@@ -1,12 +1,14 @@
 """Microbenchmark kernel: pure ray casting through the engine's `wp.Mesh` (model frame, metres).
 
-One thread per (pose, pixel) of the full image; the ray is built exactly as kernel #1
-builds it (camera direction (u - cx)/fx, (v - cy)/fy, 1 turned into the model frame),
+One thread per (pose, pixel) of the full image; the ray is kernel #1's own (render.pixel_ray_m:
+camera direction (u - cx)/fx, (v - cy)/fy, 1 turned into the model frame),
 and only the hit parameter is written, so the timing is the BVH traversal and
 triangle tests alone (no texture lookup, no packing by boxes).
 """
 
 import warp as wp
+
+from .render import pixel_ray_m
 
 # Written where a ray meets nothing.
 MISS = -1.0
@@ -25,8 +27,7 @@ def cast_depth(
 ):
     """out_t[p, v, u] = ray parameter of the first hit (the camera-frame depth, m, since the direction's z is 1)."""
     p, v, u = wp.tid()
-    d_c = wp.vec3((float(u) - cx) / fx, (float(v) - cy) / fy, 1.0)
-    q = wp.mesh_query_ray(mesh, origin_m[p], rot_c2m[p] * d_c, 1.0e6)
+    q = wp.mesh_query_ray(mesh, origin_m[p], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[p]), 1.0e6)
     if q.result:
         out_t[p, v, u] = q.t
     else:

@@ -37,6 +37,7 @@ from .camera import Camera
 from .errors import PerchError
 from .kernels.raycast_bench import MISS  # the hit parameter written where a ray meets nothing
 from .mesh import ObjectMesh
+from .render import camera_in_model  # the rays of kernel #1
 from .search_space import SearchSpace
 from .table import RestingPose, Table
 
@@ -312,13 +313,6 @@ def poses_in_view(
     return R[sel], t[sel], np.stack([x[pick][sel], y[pick][sel], yaw[pick][sel]], -1)
 
 
-def _rays_model_frame(R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Per pose: camera -> model rotation (float32) and the camera centre in the model frame (m), as kernel #1 uses."""
-    R_c2m = np.ascontiguousarray(np.transpose(R_m2c, (0, 2, 1)), dtype=np.float32)
-    origin_m = -np.einsum("nij,nj->ni", R_c2m.astype(np.float64), t_m2c_m).astype(np.float32)
-    return R_c2m, origin_m
-
-
 def _timed_loop(step, min_time_s: float) -> tuple[int, float, float]:
     """Call `step()` (which must finish its work) until min_time_s has passed, at least once.
 
@@ -351,7 +345,7 @@ def warp_raycast(
 
     from .kernels.raycast_bench import cast_depth
 
-    R_c2m, origin_m = _rays_model_frame(np.asarray(R_m2c, np.float64), np.asarray(t_m2c_m, np.float64))
+    R_c2m, origin_m = camera_in_model(np.asarray(R_m2c, np.float64), np.asarray(t_m2c_m, np.float64))
     P = len(R_c2m)
     with wp.ScopedDevice(device):
         rot = wp.array(R_c2m, dtype=wp.mat33)
@@ -393,7 +387,7 @@ def open3d_raycast(
     """
     import open3d as o3d
 
-    R_c2m, origin_m = _rays_model_frame(np.asarray(R_m2c, np.float64), np.asarray(t_m2c_m, np.float64))
+    R_c2m, origin_m = camera_in_model(np.asarray(R_m2c, np.float64), np.asarray(t_m2c_m, np.float64))
     P, H, W = len(R_c2m), camera.height, camera.width
     v, u = np.mgrid[0:H, 0:W].astype(np.float32)
     d_c = np.stack(
@@ -675,7 +669,7 @@ def run(args: argparse.Namespace) -> int:
             "yaw_step_rad": args.yaw_step,
             "search": args.search,
             "image_scale": args.image_scale,
-            "cpu_threads": engine.cpu_threads(),
+            "cpu_threads": threads,
             "stride_px": config.stride,
             "alpha": config.alpha,
             "clusters": config.clusters,

@@ -14,7 +14,7 @@ import warp as wp
 
 from .camera import Camera
 from .kernels.bound import rarity_under_silhouette
-from .render import MeshRenderer, camera_in_model
+from .render import MeshRenderer, camera_in_model, flat_offsets
 from .score import top_alpha_mean_device
 
 # Scores are float32 cosines (which may exceed 1 by rounding) times rarity, averaged in float64:
@@ -37,8 +37,7 @@ def silhouette_points(
     and the flat offsets (B + 1,), device arrays in the layout of FeatureScorer.score_points.
     Poses are model-to-camera (R (B, 3, 3), t (B, 3) metres); boxes are pixels, gboxes feature cells."""
     gboxes = np.asarray(gboxes, dtype=np.int32)
-    counts = gboxes[:, 2].astype(np.int64) * gboxes[:, 3]
-    pt_off = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    pt_off = flat_offsets(gboxes)
     n_pts = int(pt_off[-1])
     R_c2m, origin_m = camera_in_model(R_m2c, t_m2c_m)
     with wp.ScopedDevice(renderer.device):

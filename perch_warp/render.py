@@ -98,6 +98,13 @@ class RenderedBatch:
     n: int
 
 
+def flat_offsets(boxes: np.ndarray) -> np.ndarray:
+    """Offsets (B + 1,) int32 of boxes (x0, y0, w, h) packed flat, w*h items each, row by row:
+    the layout of the render, score and bound kernels (pixels or feature-grid cells)."""
+    areas = boxes[:, 2].astype(np.int64) * boxes[:, 3]
+    return np.concatenate([[0], np.cumsum(areas)]).astype(np.int32)
+
+
 def camera_in_model(R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per pose, the camera-to-model rotation (N, 3, 3) float32 and the camera centre in the model
     frame (N, 3) float32 metres: rays are cast in the model frame, through one BVH for all poses."""
@@ -130,8 +137,7 @@ class MeshRenderer:
     def render(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, boxes: np.ndarray) -> RenderedBatch:
         """Ray-cast each candidate's box (boxes (B, 4) with w, h > 0); returns device arrays."""
         boxes = np.asarray(boxes, dtype=np.int32)
-        sizes = boxes[:, 2].astype(np.int64) * boxes[:, 3]
-        pix_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
+        pix_off = flat_offsets(boxes)
         n_pix = int(pix_off[-1])
         R_c2m, origin_m = camera_in_model(R_m2c, t_m2c_m)
         with wp.ScopedDevice(self.device):

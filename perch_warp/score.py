@@ -10,7 +10,7 @@ import warp as wp
 from .features import FeatureWeights
 from .kernels.features import NOT_ON_MASK, feature_kernels
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
-from .render import RenderedBatch
+from .render import RenderedBatch, flat_offsets
 
 
 def grid_shape(width: int, height: int, kernel_size: int, stride: int) -> tuple[int, int]:
@@ -80,8 +80,7 @@ class FeatureScorer:
         offsets (B + 1,) int32 of each candidate's points, both device arrays (they stay there
         for `top_alpha_mean_device`); off-mask points hold NOT_ON_MASK."""
         gboxes = np.asarray(gboxes, dtype=np.int32)
-        counts = gboxes[:, 2].astype(np.int64) * gboxes[:, 3]
-        pt_off = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+        pt_off = flat_offsets(gboxes)
         n_pts = int(pt_off[-1])
         with wp.ScopedDevice(self.device):
             out = wp.empty(n_pts, dtype=float)
