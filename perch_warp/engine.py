@@ -154,11 +154,7 @@ class Engine:
         """Best (x, y, yaw) of the object in the photo; see the module doc for the stages."""
         cfg = self.config
         timings: dict[str, float] = {}
-        self._n_batches = 0
-        self._n_rays = 0
-        self._n_bound_rays = 0
-        if cfg.image_scale != 1.0:
-            image_rgb, camera = _rescale(check_rgb(image_rgb), camera, cfg.image_scale)
+        image_rgb, camera = self._begin(image_rgb, camera)
         bar = None
         if progress:
             from tqdm import tqdm
@@ -225,10 +221,8 @@ class Engine:
     ) -> dict[str, np.ndarray]:
         """Every candidate's silhouette bound and score (analysis of the pruned search; nothing pruned):
         arrays x_m, y_m, yaw_rad (table frame), bound, score; -inf where a candidate shows no feature point."""
-        self._n_batches = self._n_rays = self._n_bound_rays = 0
         timings: dict[str, float] = {}
-        if self.config.image_scale != 1.0:
-            image_rgb, camera = _rescale(check_rgb(image_rgb), camera, self.config.image_scale)
+        image_rgb, camera = self._begin(image_rgb, camera)
         photo = self._photo(image_rgb, camera, timings)
         x, y, yaw = space.candidates()
         R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
@@ -236,6 +230,13 @@ class Engine:
         self._bound_some(photo, camera, R, tr, boxes, gboxes, live, bounds, timings)
         self._score_some(photo, camera, R, tr, boxes, gboxes, live, scores, timings)
         return {"x_m": x, "y_m": y, "yaw_rad": yaw, "bound": bounds, "score": scores}
+
+    def _begin(self, image_rgb: np.ndarray, camera: Camera) -> tuple[np.ndarray, Camera]:
+        """Zero the per-search counters; the photo and camera the search runs on (image_scale applied)."""
+        self._n_batches = self._n_rays = self._n_bound_rays = 0
+        if self.config.image_scale != 1.0:
+            return _rescale(check_rgb(image_rgb), camera, self.config.image_scale)
+        return image_rgb, camera
 
     def _photo(self, image_rgb: np.ndarray, camera: Camera, timings: dict) -> _Photo:
         """The photo's feature map, norms and rarity, on the device (once per photo)."""
@@ -309,8 +310,7 @@ class Engine:
     def _batched(self, work, idx: np.ndarray, sizes: np.ndarray, out: np.ndarray, timings: dict, bar) -> None:
         """out[b] = work(b)[0] for batches b of idx (their sizes, in rays, within the device's budget),
         on a thread pool on the CPU; work's stage seconds are added to timings."""
-        cfg = self.config
-        budget = cfg.batch_pixels or _batch_pixels(self.device)
+        budget = self._budget()
         n_rays = int(sizes.sum())
         threads = self.cpu_threads()
         if threads > 1:
@@ -347,6 +347,10 @@ class Engine:
                 for f in futures:
                     f.cancel()
                 raise
+
+    def _budget(self) -> int:
+        """Rays (pixels or feature points) per batch: the config's, else sized to the device."""
+        return self.config.batch_pixels or _batch_pixels(self.device)
 
     def cpu_threads(self) -> int:
         """Threads scoring batches at once: 1 on a GPU (one stream), else the config's or one per core."""
@@ -398,19 +402,13 @@ class Engine:
         x, y, yaw = space.candidates()
         R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
         scores = np.full(len(x), -np.inf)
-        if bar is not None:
-            bar.total += len(live)
-            bar.refresh()
         k = self.config.top_k
 
         def kth_best(scored: np.ndarray) -> float:
             return _kth_largest(scores[scored], k)
 
         scored, rounds, _ = self._best_first(photo, camera, R, tr, boxes, gboxes, live, scores, timings, kth_best, bar)
-        n = len(scored)
-        if bar is not None:
-            bar.update(len(live) - n)
-        info = {"bounded": len(live), "scored": n, "rounds": rounds, "bound_rays": self._n_bound_rays}
+        info = {"bounded": len(live), "scored": len(scored), "rounds": rounds, "bound_rays": self._n_bound_rays}
         return x, y, yaw, scores, info
 
     def _best_first(self, photo, camera, R, tr, boxes, gboxes, idx, scores, timings, kth_best, bar=None):
@@ -418,17 +416,19 @@ class Engine:
         until no remaining bound reaches kth_best(indices scored so far). Returns the indices scored,
         the number of rounds and the bounds (-inf where not bounded). scores[i] stays -inf for the
         others: those without feature points (whose score is -inf) and those ruled out (whose score
-        is below the final threshold)."""
-        cfg = self.config
+        is below the final threshold). The progress bar counts every candidate of idx as done."""
         bounds = np.full(len(scores), -np.inf)
         self._bound_some(photo, camera, R, tr, boxes, gboxes, idx, bounds, timings)
         # A candidate without feature points scores -inf whatever it shows: never worth scoring.
         order = idx[np.argsort(-bounds[idx], kind="stable")]
         order = order[np.isfinite(bounds[order])]
         ranked = bounds[order]
+        if bar is not None:
+            bar.total += len(idx)
+            bar.refresh()
         # A round: about one budget of rays per thread, so that the first rounds set the threshold
         # early and each later one stops as soon as the bounds fall below it.
-        per_round = (cfg.batch_pixels or _batch_pixels(self.device)) * self.cpu_threads()
+        per_round = self._budget() * self.cpu_threads()
         threshold = kth_best(order[:0])
         pos = 0
         rounds = 0
@@ -444,6 +444,8 @@ class Engine:
             pos = end
             rounds += 1
             threshold = kth_best(order[:pos])
+        if bar is not None:
+            bar.update(len(idx) - pos)  # the rest: ruled out or without feature points
         return order[:pos], rounds, bounds
 
     def _coarse_to_fine(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
@@ -486,9 +488,6 @@ class Engine:
             def kth_best(scored: np.ndarray) -> float:
                 return _kth_largest(np.concatenate([known, sc[scored]]), k_beam)
 
-            if bar is not None:
-                bar.total += len(live)
-                bar.refresh()
             scored, _, bounds = self._best_first(photo, camera, R, tr, boxes, gboxes, live, sc, timings, kth_best, bar)
             # Memoised: the scored, and those whose score is -inf because no feature point shows (as
             # without bounds). Ruled out: a finite bound below the threshold, so a score below it too.
@@ -496,8 +495,6 @@ class Engine:
             dropped[scored] = False
             memo.update(zip(flat[~dropped].tolist(), sc[~dropped].tolist(), strict=True))
             ruled_out.update(flat[dropped].tolist())
-            if bar is not None:
-                bar.update(int(dropped.sum()))
 
         def best() -> np.ndarray:
             flat = np.fromiter(memo.keys(), dtype=np.int64, count=len(memo))
