@@ -50,6 +50,7 @@ STAGES = (
     "features_score",
     "transfer",
     "reduction",
+    "refine",
     "total",
 )
 AGREEMENT_MIN = 0.999  # hit/miss agreement the microbenchmark and its peer must reach
@@ -265,6 +266,7 @@ def time_search(engine, w: Workload, repeat: int, warmup: int = 1) -> dict:
         "candidates_per_s": evaluated / wall if wall > 0 else None,
         # Per thread where several CPU threads render at once (the render stage is then their summed time).
         "rays_per_s_render": rays / mean["render"] if mean.get("render", 0.0) > 0 else None,
+        "refine": res.info.get("refine"),
         "pose": {"x_m": b.x_m, "y_m": b.y_m, "yaw_rad": b.yaw_rad, "score": b.score},
         "truth": {"x_m": gx, "y_m": gy, "yaw_rad": gyaw},
         "adds_m": add_s(b.T_m2c[:3, :3], b.T_m2c[:3, 3], w.R_gt, w.t_gt_m, w.adds_points_m),
@@ -535,6 +537,13 @@ def format_report(r: dict) -> str:
         f"{_rate(s['rays_per_s_render'], 'rays/s')} (rays / render stage{', per thread' if threads > 1 else ''})",
         f"rays          {s['rays_per_run']:,} pixels ray-cast per run, {s['batches']} batch(es)",
     ]
+    ref = s.get("refine")
+    if ref:
+        lines.append(
+            f"refinement    to {ref['step_xy_m'] * 1000:.3g} mm / {ref['step_yaw_deg']:.3g} deg: "
+            f"{ref['evaluated']} poses, {ref['rays']:,} rays (not in the figures above), {ref['moves']} moves, "
+            f"score {ref['score_gain']:+.4f}"
+        )
     m = r["memory"]
     dev = (
         f"{m['device_peak_mib']:.1f} MiB ({m['device_note']})" if m["device_peak_mib"] is not None else m["device_note"]
@@ -601,6 +610,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     m.add_argument("--search", default="exhaustive", choices=["exhaustive", "pruned", "coarse-to-fine"])
     m.add_argument("--image-scale", type=float, default=1.0, help="search on the photo resized by this factor")
     m.add_argument("--cpu-threads", type=int, default=None, help="CPU device: batches at once (default: one per core)")
+    m.add_argument(
+        "--refine",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="refine the best grid pose to 2 mm / 1 deg, as the CLI does (default: on)",
+    )
     b = parser.add_argument_group("benchmark")
     b.add_argument("--repeat", type=int, default=1, help="timed runs after the warm-up runs (default: 1)")
     b.add_argument(
@@ -635,7 +650,9 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.min_time) and args.min_time >= 0):
         raise PerchError(f"--min-time must be a non-negative number of seconds, got {args.min_time}")
     # validates before any work
-    config = EngineConfig(search=args.search, image_scale=args.image_scale, cpu_threads=args.cpu_threads)
+    config = EngineConfig(
+        search=args.search, image_scale=args.image_scale, cpu_threads=args.cpu_threads, refine=args.refine
+    )
     w = load_workload(dataset, args.scene, args.image, args.obj, args.clip, args.xy_step, args.yaw_step, args.split)
     weights = load_feature_weights(args.weights)
     device = args.device or default_device()
@@ -668,6 +685,7 @@ def run(args: argparse.Namespace) -> int:
             "xy_step_m": args.xy_step,
             "yaw_step_rad": args.yaw_step,
             "search": args.search,
+            "refine": args.refine,
             "image_scale": args.image_scale,
             "cpu_threads": threads,
             "stride_px": config.stride,

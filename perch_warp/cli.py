@@ -59,6 +59,14 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--coarse-yaw", type=float, default=10.0, help="coarse-to-fine: first lattice's yaw step, deg")
     g.add_argument("--beam", type=int, default=32, help="coarse-to-fine: candidates refined per level (default 32)")
     g.add_argument(
+        "--refine",
+        action=argparse.BooleanOptionalAction,
+        default=True,
+        help="refine the best grid pose below the grid, to --refine-xy and --refine-yaw (default: on)",
+    )
+    g.add_argument("--refine-xy", type=float, default=0.002, help="refinement's finest x/y step, m (default: 0.002)")
+    g.add_argument("--refine-yaw", type=float, default=1.0, help="refinement's finest yaw step, deg (default: 1)")
+    g.add_argument(
         "--image-scale",
         type=float,
         default=1.0,
@@ -111,6 +119,9 @@ def engine_config_from_args(args: argparse.Namespace):
         beam=args.beam,
         image_scale=args.image_scale,
         cpu_threads=args.cpu_threads,
+        refine=args.refine,
+        refine_xy_m=args.refine_xy,
+        refine_yaw_rad=math.radians(args.refine_yaw),
     )
 
 
@@ -332,6 +343,14 @@ def search_summary(result) -> str:
             line += f" (every silhouette bound reached the top {k}: nothing pruned)"
     elif info["search"] == "coarse-to-fine":
         line += " (a pyramid: may miss the exhaustive optimum)"
+    ref = info.get("refine")
+    if ref is not None:
+        line += (
+            f"; refined below the grid to {ref['step_xy_m'] * 1000:.3g} mm / {ref['step_yaw_deg']:.3g}° "
+            f"({ref['evaluated']} poses scored, score {ref['score_gain']:+.4f})"
+        )
+        if not ref["converged"]:
+            line += " (still climbing when its move limit ran out)"
     return line
 
 

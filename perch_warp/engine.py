@@ -26,6 +26,7 @@ from .features import FeatureWeights
 from .image import check_rgb
 from .mesh import ObjectMesh
 from .rarity import rarity as rarity_fn
+from .refine import refine_pose
 from .render import MIN_DEPTH_M, BoxProjector, MeshRenderer
 from .result import Candidate, Result
 from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean_device
@@ -60,6 +61,11 @@ class EngineConfig:
     # CPU device only: batches scored at once on this many threads (a Warp CPU launch runs on one
     # core but releases the GIL). None: one per available core; 1: one batch after another.
     cpu_threads: int | None = None
+    # After the grid search, climb from the best grid pose to a local maximum of the score on a
+    # lattice of at most refine_xy_m and refine_yaw_rad (perch_warp.refine): off-grid poses.
+    refine: bool = True
+    refine_xy_m: float = 0.002
+    refine_yaw_rad: float = math.radians(1.0)
 
     def __post_init__(self) -> None:
         if not (0.0 < self.alpha <= 1.0) or not math.isfinite(self.alpha):
@@ -76,6 +82,11 @@ class EngineConfig:
             raise PerchError(f"search must be one of {', '.join(SEARCHES)}, got {self.search!r}")
         if self.beam < 1 or self.coarse_xy_m <= 0 or self.coarse_yaw_rad <= 0:
             raise PerchError("coarse-to-fine needs beam >= 1 and positive coarse steps")
+        if not (self.refine_xy_m > 0 and self.refine_yaw_rad > 0):
+            raise PerchError(
+                "refinement targets (--refine-xy, --refine-yaw) must be positive, "
+                f"got {self.refine_xy_m} m and {math.degrees(self.refine_yaw_rad)} deg"
+            )
         if self.cpu_threads is not None and self.cpu_threads < 1:
             raise PerchError(
                 f"cpu_threads (--cpu-threads) must be at least 1, or None for one per core; got {self.cpu_threads}"
@@ -175,21 +186,21 @@ class Engine:
                 x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
                 evaluated = len(x)
                 extra = {"levels": levels}
+            if not np.isfinite(scores).any():
+                raise PerchError(f"the search grid projects outside the image ({space.describe()})")
+            # Stable order: ties go to the earlier candidate, so results are reproducible.
+            order = np.argsort(-scores, kind="stable")[: cfg.top_k]
+            top = [(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i])) for i in order]
+            if cfg.refine:
+                top, extra["refine"] = self._refine(photo, camera, table, resting, space, top, timings)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _score).
             wall_s = time.perf_counter() - t_start
         finally:
             if bar is not None:
                 bar.close()
-        if not np.isfinite(scores).any():
-            raise PerchError(f"the search grid projects outside the image ({space.describe()})")
 
-        # Stable order: ties go to the earlier candidate, so results are reproducible.
-        order = np.argsort(-scores, kind="stable")[: cfg.top_k]
-        R, tr = model_to_camera(table, resting, x[order], y[order], yaw[order])
-        cands = [
-            Candidate(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i]), pose_matrix(R[n], tr[n]))
-            for n, i in enumerate(order)
-        ]
+        R, tr = model_to_camera(table, resting, *(np.array([c[n] for c in top]) for n in range(3)))
+        cands = [Candidate(*c, pose_matrix(R[n], tr[n])) for n, c in enumerate(top)]
         timings["total"] = wall_s
         return Result(
             best=cands[0],
@@ -215,6 +226,39 @@ class Engine:
                 **extra,
             },
         )
+
+    def _refine(self, photo, camera, table, resting, space: SearchSpace, top: list, timings: dict):
+        """The best grid pose refined below the grid (perch_warp.refine); it replaces the first of
+        top [(x_m, y_m, yaw_rad, score)], grid poses it landed on leave the rest. Its scoring is
+        timed as one "refine" stage (wall time) and its rays are counted apart."""
+        cfg = self.config
+        t = time.perf_counter()
+        counters = (self._n_batches, self._n_rays)
+        inner: dict[str, float] = {}
+
+        def score(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
+            return self._score(photo, camera, table, resting, x, y, yaw, inner)
+
+        full = space.yaw_range_rad[1] - space.yaw_range_rad[0] >= 2 * math.pi - 1e-9
+        r = refine_pose(
+            score,
+            top[0],
+            space.xy_step_m / 2,
+            space.yaw_step_rad / 2,
+            cfg.refine_xy_m,
+            cfg.refine_yaw_rad,
+            space.x_range_m,
+            space.y_range_m,
+            None if full else space.yaw_range_rad,
+        )
+        info = {**r.to_dict(), "rays": self._n_rays - counters[1]}
+        self._n_batches, self._n_rays = counters  # the grid search's, as without refinement
+        self._lap(timings, "refine", t)
+
+        def same(c) -> bool:
+            return abs(c[0] - r.x_m) < 1e-9 and abs(c[1] - r.y_m) < 1e-9 and abs(c[2] - r.yaw_rad) < 1e-9
+
+        return [(r.x_m, r.y_m, r.yaw_rad, r.score), *(c for c in top[1:] if not same(c))], info
 
     def bounds_and_scores(
         self, image_rgb: np.ndarray, camera: Camera, table: Table, resting: RestingPose, space: SearchSpace

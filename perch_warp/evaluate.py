@@ -261,6 +261,8 @@ class EngineEstimator:
             "device": res.device,
             "top_k": [{"x_m": c.x_m, "y_m": c.y_m, "yaw_rad": c.yaw_rad, "score": c.score} for c in res.top_k],
         }
+        if "refine" in res.info:  # where the refinement started (the grid's best) and how far it went
+            details["refine"] = res.info["refine"]
         return Estimate(T[:3, :3], T[:3, 3], float(res.score), details)
 
 

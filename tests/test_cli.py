@@ -52,6 +52,7 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     assert Image.open(png).size[0] == sc.camera.width
     stdout = capsys.readouterr().out
     assert "pose: x =" in stdout and f"search: exhaustive, scored {res['n_candidates']:,} of" in stdout
+    assert "refined below the grid to 1.25 mm / 0.937°" in stdout and res["refine"]["evaluated"] > 0
 
     # The pruned search, on two CPU threads: the same pose, and it says what it scored.
     out2 = tmp_path / "r2.json"
@@ -142,3 +143,14 @@ def test_timing_line_says_when_stage_times_are_summed_over_threads():
     two = SimpleNamespace(timings_s={"render": 3.0, "total": 1.75}, info={"threads": 2})
     assert timing_line(one) == "time: render 3.00 s, total 3.50 s"
     assert timing_line(two).endswith("(batch stages: CPU s summed over 2 threads; total: wall)")
+
+
+def test_no_refine_returns_the_grid_pose(scene_dir, caffe_weights, tmp_path, capsys):
+    d, sc = scene_dir
+    out = tmp_path / "r.json"
+    assert main(_args(d, *_search_around(sc), "--weights", "caffe", "--out", str(out), "--no-refine")) == 0
+    res = json.loads(out.read_text())
+    assert "refine" not in res and "refined" not in capsys.readouterr().out
+    x0 = round(sc.truth_xy_yaw[0], 2) + 0.01 - 0.03  # the x range's start: grid poses lie on its 1 cm steps
+    assert abs((res["pose"]["x_m"] - x0) / 0.01 - round((res["pose"]["x_m"] - x0) / 0.01)) < 1e-6
+    assert abs(res["pose"]["yaw_deg"] / 30 - round(res["pose"]["yaw_deg"] / 30)) < 1e-6
