@@ -50,10 +50,10 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--relu", action="store_true", help="apply AlexNet's ReLU after conv1 (default: raw conv1)")
     g.add_argument(
         "--search",
-        default="exhaustive",
-        choices=["exhaustive", "pruned", "coarse-to-fine"],
+        default="auto",
+        choices=["auto", "exhaustive", "pruned", "coarse-to-fine"],
         help="score every grid pose; or only those whose silhouette bound can reach the best (same answer); "
-        "or a coarse lattice refined around the best (default: exhaustive)",
+        "or a coarse lattice refined around the best; auto: pruned on the CPU, exhaustive on a GPU (default)",
     )
     g.add_argument("--coarse-xy", type=float, default=0.02, help="coarse-to-fine: first lattice's x/y step, m")
     g.add_argument("--coarse-yaw", type=float, default=10.0, help="coarse-to-fine: first lattice's yaw step, deg")
@@ -334,7 +334,8 @@ def timing_line(result) -> str:
 def search_summary(result) -> str:
     """One line: how many of the space's candidates the search scored, and why not all."""
     info = result.info
-    line = f"search: {info['search']}, scored {info['evaluated']:,} of {result.n_candidates:,} candidates"
+    chosen = f" (auto on {result.device})" if info.get("search_option") == "auto" else ""
+    line = f"search: {info['search']}{chosen}, scored {info['evaluated']:,} of {result.n_candidates:,} candidates"
     if info["search"] == "pruned":
         k = len(result.top_k)
         if info["evaluated"] < info["bounded"]:

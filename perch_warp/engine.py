@@ -33,7 +33,7 @@ from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean_device
 from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera, pose_matrix
 
-SEARCHES = ("exhaustive", "pruned", "coarse-to-fine")
+SEARCHES = ("auto", "exhaustive", "pruned", "coarse-to-fine")
 
 
 @dataclass(frozen=True)
@@ -48,8 +48,10 @@ class EngineConfig:
     relu: bool = False
     batch_pixels: int | None = None  # rendered pixels per batch; None: sized to the device
     # "exhaustive": score every grid pose; "pruned": the same top-k, scoring only candidates whose
-    # silhouette bound can reach it (Engine._pruned); "coarse-to-fine": a pyramid (Engine._coarse_to_fine)
-    search: str = "exhaustive"
+    # silhouette bound can reach it (Engine._pruned); "coarse-to-fine": a pyramid (Engine._coarse_to_fine);
+    # "auto": pruned on the CPU (measured faster there, docs/performance.md), exhaustive on a GPU
+    # (the pruned search's GPU speed is not measured yet). Both give the same top-k.
+    search: str = "auto"
     coarse_xy_m: float = 0.02  # coarse-to-fine: the first lattice's x/y step
     coarse_yaw_rad: float = math.radians(10.0)  # coarse-to-fine: the first lattice's yaw step
     beam: int = 32  # coarse-to-fine: how many best candidates each finer level refines
@@ -148,6 +150,13 @@ class Engine:
         self.boxes = BoxProjector(self.hull_m, self.device)
         self.setup_s = time.perf_counter() - t0
 
+    @property
+    def search(self) -> str:
+        """The search this engine runs: the config's, with "auto" resolved for the device."""
+        if self.config.search != "auto":
+            return self.config.search
+        return "pruned" if wp.get_device(self.device).is_cpu else "exhaustive"
+
     def render(self, camera: Camera, T_m2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Full-image rendering of one pose: RGB float32 (H, W, 3) in [0, 1], mask bool (H, W)."""
         T = np.asarray(T_m2c, dtype=np.float64)
@@ -175,11 +184,12 @@ class Engine:
         try:
             photo = self._photo(image_rgb, camera, timings)
             extra: dict = {}
-            if cfg.search == "exhaustive":
+            search = self.search
+            if search == "exhaustive":
                 x, y, yaw = space.candidates()
                 scores = self._score(photo, camera, table, resting, x, y, yaw, timings, bar)
                 evaluated = len(x)
-            elif cfg.search == "pruned":
+            elif search == "pruned":
                 x, y, yaw, scores, extra = self._pruned(photo, camera, table, resting, space, timings, bar)
                 evaluated = extra["scored"]
             else:
@@ -215,7 +225,8 @@ class Engine:
                 "alpha": cfg.alpha,
                 "clusters": cfg.clusters,
                 "seed": cfg.seed,
-                "search": cfg.search,
+                "search": self.search,
+                "search_option": cfg.search,  # as asked: "auto" or the search itself
                 "image_scale": cfg.image_scale,
                 "search_space": space.describe(),
                 "evaluated": evaluated,  # candidates scored (rendered and compared)

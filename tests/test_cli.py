@@ -51,10 +51,11 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     assert set(res["timings_s"]) >= {"render", "features_score", "rarity", "reduction", "total"}
     assert Image.open(png).size[0] == sc.camera.width
     stdout = capsys.readouterr().out
-    assert "pose: x =" in stdout and f"search: exhaustive, scored {res['n_candidates']:,} of" in stdout
+    # On the CPU the default search is the pruned one, and the summary says it was chosen automatically.
+    assert "pose: x =" in stdout and "search: pruned (auto on cpu), scored " in stdout
     assert "refined below the grid to 1.25 mm / 0.937°" in stdout and res["refine"]["evaluated"] > 0
 
-    # The pruned search, on two CPU threads: the same pose, and it says what it scored.
+    # The exhaustive search, on two CPU threads: the same poses and scores, every candidate scored.
     out2 = tmp_path / "r2.json"
     assert (
         main(
@@ -66,7 +67,7 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
                 "--out",
                 str(out2),
                 "--search",
-                "pruned",
+                "exhaustive",
                 "--cpu-threads",
                 "2",
             )
@@ -76,7 +77,8 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     res2 = json.loads(out2.read_text())
     keys = ("x_m", "y_m", "yaw_rad", "score")  # (the 4x4 transforms agree to rounding, not bit for bit)
     assert [[c[k] for k in keys] for c in res2["top_k"]] == [[c[k] for k in keys] for c in res["top_k"]]
-    assert "search: pruned, scored " in capsys.readouterr().out and res2["bounded"] == res["n_candidates"]
+    assert res["bounded"] == res2["n_candidates"] == res2["evaluated"]
+    assert f"search: exhaustive, scored {res2['n_candidates']:,} of" in capsys.readouterr().out
 
 
 def _error(capsys, args) -> str:

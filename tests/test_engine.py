@@ -37,7 +37,10 @@ def _yaw_err_deg(a, b):
 def test_recovers_known_pose_within_one_grid_step(scene, caffe_weights):
     gx, gy, gyaw = scene.truth_xy_yaw
     space = _space_around(gx, gy)
-    r = Engine(scene.mesh, caffe_weights, DEVICE).estimate(scene.image, scene.camera, scene.table, scene.resting, space)
+    cfg = EngineConfig(search="exhaustive", refine=False)
+    r = Engine(scene.mesh, caffe_weights, DEVICE, cfg).estimate(
+        scene.image, scene.camera, scene.table, scene.resting, space
+    )
     assert abs(r.x_m - gx) <= 0.01 + 1e-9 and abs(r.y_m - gy) <= 0.01 + 1e-9
     assert _yaw_err_deg(r.yaw_rad, gyaw) <= 30.0
     assert r.n_scored == r.n_candidates == len(space)
@@ -66,7 +69,7 @@ def test_cpu_threads_give_the_same_scores_as_one(scene, random_weights):
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
 
     def run(threads):
-        config = EngineConfig(batch_pixels=5000, top_k=len(space), cpu_threads=threads)
+        config = EngineConfig(batch_pixels=5000, top_k=len(space), cpu_threads=threads, search="exhaustive")
         return Engine(scene.mesh, random_weights, DEVICE, config).estimate(*args)
 
     one, two = run(1), run(2)
@@ -100,7 +103,7 @@ def test_coarse_to_fine_scores_a_subset_and_matches_exhaustive_here(scene, caffe
     gx, gy, _ = scene.truth_xy_yaw
     space = _space_around(gx, gy, half=0.06, yaw_step_deg=15.0)
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
-    ex = Engine(scene.mesh, caffe_weights, DEVICE).estimate(*args)
+    ex = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(search="exhaustive")).estimate(*args)
     cfg = EngineConfig(search="coarse-to-fine", coarse_xy_m=0.04, coarse_yaw_rad=math.radians(45), beam=4)
     c2f = Engine(scene.mesh, caffe_weights, DEVICE, cfg).estimate(*args)
     assert c2f.info["evaluated"] < len(space) / 3

@@ -142,7 +142,8 @@ def main(argv: list[str] | None = None) -> int:
         weights = load_feature_weights(args.weights)
         device = args.device or default_device()
         engines = {
-            k: Engine(w0.mesh, weights, device, EngineConfig(image_scale=k)) for k in {p["image_scale"] for p in points}
+            k: Engine(w0.mesh, weights, device, EngineConfig(image_scale=k, search="exhaustive", refine=False))
+            for k in {p["image_scale"] for p in points}
         }
     except PerchError as e:
         print(f"scaling: error: {e}", file=sys.stderr)

@@ -97,7 +97,7 @@ def main() -> None:
     for name, mesh, image, camera, table, resting, R, t, space in cases(args.demo_scenes):
         cells = []
         for s in args.strides:
-            eng = Engine(mesh, weights, args.device, EngineConfig(stride=s))
+            eng = Engine(mesh, weights, args.device, EngineConfig(stride=s, search="exhaustive", refine=False))
             t0 = time.perf_counter()
             r = eng.estimate(image, camera, table, resting, space)
             dt = time.perf_counter() - t0
