@@ -540,9 +540,9 @@ def format_report(r: dict) -> str:
     ref = s.get("refine")
     if ref:
         lines.append(
-            f"refinement    to {ref['step_xy_m'] * 1000:.3g} mm / {ref['step_yaw_deg']:.3g} deg: "
-            f"{ref['evaluated']} poses, {ref['rays']:,} rays (not in the figures above), {ref['moves']} moves, "
-            f"score {ref['score_gain']:+.4f}"
+            f"refinement    cell of the best grid pose at {ref['step_xy_m'] * 1000:.3g} mm / {ref['step_yaw_deg']:.3g} "
+            f"deg: {ref['evaluated']:,} of {ref['candidates']:,} poses scored, {ref['rays']:,} rays (not in the "
+            f"figures above), score {ref['score_gain']:+.4f}"
         )
     m = r["memory"]
     dev = (
@@ -614,7 +614,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--refine",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="refine the best grid pose to 2 mm / 1 deg, as the CLI does (default: on)",
+        help="search the best grid pose's cell at 2 mm / 1 deg, as the CLI does (default: on)",
     )
     b = parser.add_argument_group("benchmark")
     b.add_argument("--repeat", type=int, default=1, help="timed runs after the warm-up runs (default: 1)")

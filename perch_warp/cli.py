@@ -62,10 +62,11 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
         "--refine",
         action=argparse.BooleanOptionalAction,
         default=True,
-        help="refine the best grid pose below the grid, to --refine-xy and --refine-yaw (default: on)",
+        help="search the best grid pose's cell (one grid step either side) at --refine-xy and --refine-yaw "
+        "(default: on)",
     )
-    g.add_argument("--refine-xy", type=float, default=0.002, help="refinement's finest x/y step, m (default: 0.002)")
-    g.add_argument("--refine-yaw", type=float, default=1.0, help="refinement's finest yaw step, deg (default: 1)")
+    g.add_argument("--refine-xy", type=float, default=0.002, help="refinement's x/y step at most, m (default: 0.002)")
+    g.add_argument("--refine-yaw", type=float, default=1.0, help="refinement's yaw step at most, deg (default: 1)")
     g.add_argument(
         "--image-scale",
         type=float,
@@ -347,11 +348,10 @@ def search_summary(result) -> str:
     ref = info.get("refine")
     if ref is not None:
         line += (
-            f"; refined below the grid to {ref['step_xy_m'] * 1000:.3g} mm / {ref['step_yaw_deg']:.3g}° "
-            f"({ref['evaluated']} poses scored, score {ref['score_gain']:+.4f})"
+            f"; refined below the grid: the best pose's cell at {ref['step_xy_m'] * 1000:.3g} mm / "
+            f"{ref['step_yaw_deg']:.3g}° ({ref['evaluated']:,} of {ref['candidates']:,} poses scored, "
+            f"score {ref['score_gain']:+.4f})"
         )
-        if not ref["converged"]:
-            line += " (still climbing when its move limit ran out)"
     return line
 
 

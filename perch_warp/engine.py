@@ -26,7 +26,7 @@ from .features import FeatureWeights
 from .image import check_rgb
 from .mesh import ObjectMesh
 from .rarity import rarity as rarity_fn
-from .refine import refine_pose
+from .refine import cell_space
 from .render import MIN_DEPTH_M, BoxProjector, MeshRenderer
 from .result import Candidate, Result
 from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean_device
@@ -63,8 +63,8 @@ class EngineConfig:
     # CPU device only: batches scored at once on this many threads (a Warp CPU launch runs on one
     # core but releases the GIL). None: one per available core; 1: one batch after another.
     cpu_threads: int | None = None
-    # After the grid search, climb from the best grid pose to a local maximum of the score on a
-    # lattice of at most refine_xy_m and refine_yaw_rad (perch_warp.refine): off-grid poses.
+    # After the grid search, search the best grid pose's cell (one grid step either side) on a grid
+    # of at most refine_xy_m and refine_yaw_rad (perch_warp.refine): poses between the grid's.
     refine: bool = True
     refine_xy_m: float = 0.002
     refine_yaw_rad: float = math.radians(1.0)
@@ -239,37 +239,42 @@ class Engine:
         )
 
     def _refine(self, photo, camera, table, resting, space: SearchSpace, top: list, timings: dict):
-        """The best grid pose refined below the grid (perch_warp.refine); it replaces the first of
-        top [(x_m, y_m, yaw_rad, score)], grid poses it landed on leave the rest. Its scoring is
-        timed as one "refine" stage (wall time) and its rays are counted apart."""
+        """The best grid pose refined below the grid: the best of its cell at the fine resolution
+        (perch_warp.refine), searched as the grid was (pruned or exhaustive: the same best). It replaces
+        the first of top [(x_m, y_m, yaw_rad, score)]; the runners-up stay. Timed as one "refine" stage
+        (wall time); its rays are counted apart from the grid search's."""
         cfg = self.config
         t = time.perf_counter()
-        counters = (self._n_batches, self._n_rays)
+        counters = (self._n_batches, self._n_rays, self._n_bound_rays)
         inner: dict[str, float] = {}
-
-        def score(x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> np.ndarray:
-            return self._score(photo, camera, table, resting, x, y, yaw, inner)
-
-        full = space.yaw_range_rad[1] - space.yaw_range_rad[0] >= 2 * math.pi - 1e-9
-        r = refine_pose(
-            score,
-            top[0],
-            space.xy_step_m / 2,
-            space.yaw_step_rad / 2,
-            cfg.refine_xy_m,
-            cfg.refine_yaw_rad,
-            space.x_range_m,
-            space.y_range_m,
-            None if full else space.yaw_range_rad,
-        )
-        info = {**r.to_dict(), "rays": self._n_rays - counters[1]}
-        self._n_batches, self._n_rays = counters  # the grid search's, as without refinement
+        x0, y0, yaw0, s0 = top[0]
+        cell = cell_space(space, x0, y0, yaw0, cfg.refine_xy_m, cfg.refine_yaw_rad)
+        search = "pruned" if self.search == "pruned" else "exhaustive"
+        if search == "pruned":
+            x, y, yaw, scores, _ = self._pruned(photo, camera, table, resting, cell, inner)
+        else:
+            x, y, yaw = cell.candidates()
+            scores = self._score(photo, camera, table, resting, x, y, yaw, inner)
+        i = int(np.argmax(scores))  # the first of equal maxima
+        best = (float(x[i]), float(y[i]), float(yaw[i]) % (2 * math.pi), float(scores[i]))
+        info = {
+            "step_xy_m": cell.xy_step_m,
+            "step_yaw_deg": math.degrees(cell.yaw_step_rad),
+            "cell": cell.describe(),
+            "search": search,
+            "candidates": len(x),
+            "evaluated": int(np.isfinite(scores).sum()),
+            "from": {"x_m": x0, "y_m": y0, "yaw_deg": math.degrees(yaw0), "score": s0},
+            "score_gain": best[3] - s0,
+            "rays": self._n_rays - counters[1],
+        }
+        self._n_batches, self._n_rays, self._n_bound_rays = counters  # the grid search's, as without refinement
         self._lap(timings, "refine", t)
 
         def same(c) -> bool:
-            return abs(c[0] - r.x_m) < 1e-9 and abs(c[1] - r.y_m) < 1e-9 and abs(c[2] - r.yaw_rad) < 1e-9
+            return abs(c[0] - best[0]) < 1e-9 and abs(c[1] - best[1]) < 1e-9 and abs(c[2] - best[2]) < 1e-9
 
-        return [(r.x_m, r.y_m, r.yaw_rad, r.score), *(c for c in top[1:] if not same(c))], info
+        return [best, *(c for c in top[1:] if not same(c))], info
 
     def bounds_and_scores(
         self, image_rgb: np.ndarray, camera: Camera, table: Table, resting: RestingPose, space: SearchSpace

@@ -53,7 +53,7 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     stdout = capsys.readouterr().out
     # On the CPU the default search is the pruned one, and the summary says it was chosen automatically.
     assert "pose: x =" in stdout and "search: pruned (auto on cpu), scored " in stdout
-    assert "refined below the grid to 1.25 mm / 0.937°" in stdout and res["refine"]["evaluated"] > 0
+    assert "refined below the grid: the best pose's cell at 2 mm / 1°" in stdout and res["refine"]["evaluated"] > 0
 
     # The exhaustive search, on two CPU threads: the same poses and scores, every candidate scored.
     out2 = tmp_path / "r2.json"

@@ -1,4 +1,4 @@
-"""Refinement below the grid: the walk on analytic scores, then the engine on a photographed scene."""
+"""Refinement below the grid: the cell's fine grid, then the engine on a photographed scene."""
 
 import math
 
@@ -9,72 +9,45 @@ from _device import DEVICE
 from perch_warp.demo import demo_scene
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
-from perch_warp.refine import refine_pose
-from perch_warp.search_space import SearchSpace
+from perch_warp.refine import cell_space, fine_steps
+from perch_warp.search_space import FULL_CIRCLE, SearchSpace
 
 
 def _ang(a, b):
     return np.abs((np.asarray(a) - b + math.pi) % (2 * math.pi) - math.pi)
 
 
-class Bowl:
-    """A smooth single-peaked score with its maximum at (x0, y0, yaw0); counts every pose scored."""
-
-    def __init__(self, x0, y0, yaw0):
-        self.peak = (x0, y0, yaw0)
-        self.calls: list[tuple[float, float, float]] = []
-
-    def __call__(self, x, y, yaw):
-        self.calls += list(zip(x.tolist(), y.tolist(), yaw.tolist(), strict=True))
-        x0, y0, yaw0 = self.peak
-        return 1.0 - ((x - x0) / 0.01) ** 2 - ((y - y0) / 0.02) ** 2 - (_ang(yaw, yaw0) / 0.1) ** 2
-
-    def at(self, x, y, yaw):
-        return float(self(np.array([x]), np.array([y]), np.array([yaw]))[0])
+def test_fine_steps_divide_the_grid_step_and_meet_the_target():
+    assert fine_steps(0.01, 0.002) == pytest.approx((0.002, 5))
+    assert fine_steps(0.02, 0.002) == pytest.approx((0.002, 10))
+    step, n = fine_steps(0.1, math.radians(1.0))  # 0.1 rad = 5.73 deg: six steps of 0.955 deg
+    assert n == 6 and step == pytest.approx(0.1 / 6) and step <= math.radians(1.0)
+    assert fine_steps(0.001, 0.002) == pytest.approx((0.001, 1))  # the grid is already fine enough
+    with pytest.raises(PerchError, match="positive"):
+        fine_steps(0.01, 0.0)
 
 
-def test_climbs_from_a_grid_pose_to_the_peak_within_the_targets():
-    f = Bowl(0.0137, -0.0222, math.radians(33.3))
-    start = (0.01, -0.02, math.radians(30.0))
-    r = refine_pose(f, (*start, f.at(*start)), 0.005, math.radians(2.5))
-    assert abs(r.x_m - 0.0137) <= 0.002 and abs(r.y_m + 0.0222) <= 0.002
-    assert math.degrees(_ang(r.yaw_rad, math.radians(33.3))) <= 1.0
-    assert r.step_xy_m <= 0.002 and r.step_yaw_rad <= math.radians(1.0) + 1e-12 and r.converged
-    # Each pose scored once (the start's score was given), and the count says so.
-    called = [(round(a, 9), round(b, 9), round(c, 9)) for a, b, c in f.calls[1:]]
-    assert len(called) == len(set(called)) == r.evaluated
-    assert r.score > r.path[0][3] and r.score == pytest.approx(f.at(r.x_m, r.y_m, r.yaw_rad))
-    # A local maximum at the final steps: no neighbour scores higher.
-    for dx in (-1, 0, 1):
-        for dy in (-1, 0, 1):
-            for dk in (-1, 0, 1):
-                assert f.at(r.x_m + dx * r.step_xy_m, r.y_m + dy * r.step_xy_m, r.yaw_rad + dk * r.step_yaw_rad) <= (
-                    r.score
-                )
+def test_cell_is_one_grid_step_either_side_and_contains_the_grid_pose():
+    space = SearchSpace((-0.1, 0.1), (-0.2, 0.0), 0.01, FULL_CIRCLE, math.radians(5))
+    cell = cell_space(space, 0.03, -0.12, math.radians(40), 0.002, math.radians(1))
+    xs, ys, yaws = cell.axes()
+    assert len(xs) == len(ys) == 11 and len(yaws) == 11
+    assert xs[0] == pytest.approx(0.02) and xs[-1] == pytest.approx(0.04)
+    assert np.min(np.abs(xs - 0.03)) < 1e-12 and np.min(np.abs(ys + 0.12)) < 1e-12
+    assert np.min(_ang(yaws, math.radians(40))) < 1e-12
+    assert np.allclose(np.diff(yaws), math.radians(1)) and cell.xy_step_m == pytest.approx(0.002)
+    # Across 0 degrees the cell keeps going (yaws below 0 are the same poses as below 360).
+    cell0 = cell_space(space, 0.03, -0.12, 0.0, 0.002, math.radians(1))
+    assert cell0.axes()[2][0] == pytest.approx(math.radians(-5))
 
 
-def test_stays_at_a_peak_it_starts_on_and_never_goes_down():
-    f = Bowl(0.0, 0.0, 1.0)
-    r = refine_pose(f, (0.0, 0.0, 1.0, f.at(0.0, 0.0, 1.0)), 0.005, math.radians(2.5))
-    assert (r.x_m, r.y_m, r.yaw_rad) == (0.0, 0.0, 1.0) and len(r.path) == 1
-    assert r.evaluated == 26 * 3  # the neighbourhood at 5, 2.5 and 1.25 mm (yaw 2.5°, 1.25°, 0.625°)
-
-
-def test_keeps_to_the_region_and_wraps_yaw():
-    f = Bowl(0.05, 0.0, math.radians(359.0))
-    start = (0.02, 0.0, math.radians(1.0))
-    r = refine_pose(f, (*start, f.at(*start)), 0.005, math.radians(2.5), x_range_m=(0.0, 0.03))
-    assert r.x_m == pytest.approx(0.03)  # the peak lies beyond the region's edge
-    assert math.degrees(_ang(r.yaw_rad, math.radians(359.0))) <= 1.0  # across 0°
-    assert 0.0 <= r.yaw_rad < 2 * math.pi
-    # A yaw range that is not the full circle is clipped, not wrapped.
-    r2 = refine_pose(f, (*start, f.at(*start)), 0.005, math.radians(2.5), yaw_range_rad=(0.0, math.radians(90)))
-    assert r2.yaw_rad == pytest.approx(0.0)
-
-
-def test_refuses_non_positive_steps():
-    with pytest.raises(PerchError, match="refinement x/y target"):
-        refine_pose(Bowl(0, 0, 0), (0, 0, 0, 1.0), 0.005, 0.01, target_xy_m=0.0)
+def test_cell_is_cut_to_the_searched_region():
+    space = SearchSpace((-0.1, 0.1), (-0.2, 0.0), 0.01, (0.0, math.radians(90)), math.radians(5))
+    cell = cell_space(space, 0.1, -0.2, 0.0, 0.002, math.radians(1))
+    xs, ys, yaws = cell.axes()
+    assert xs[0] == pytest.approx(0.09) and xs[-1] == pytest.approx(0.1)
+    assert ys[0] == pytest.approx(-0.2) and ys[-1] == pytest.approx(-0.19)
+    assert yaws[0] == pytest.approx(0.0) and yaws[-1] == pytest.approx(math.radians(5))
 
 
 @pytest.fixture(scope="module")
@@ -84,20 +57,32 @@ def scene():
 
 def test_engine_refines_the_photographed_box_below_its_grid(scene, caffe_weights):
     """The demo's box (lit, shadowed, noisy photo) at an off-grid pose: a 1 cm / 30° grid finds it
-    within a step; refinement brings it within 2 mm and 1° and scores higher."""
+    within a step; the refinement returns the best pose of an exhaustive 2 mm / 1° search of that
+    grid pose's cell, within 2 mm and 1° of the truth."""
     gx, gy, gyaw = scene.truth_xy_yaw
     cx, cy = round(gx / 0.01) * 0.01 + 0.01, round(gy / 0.01) * 0.01 - 0.01
-    space = SearchSpace((cx - 0.03, cx + 0.03), (cy - 0.03, cy + 0.03), 0.01, (0, 2 * math.pi), math.radians(30))
+    space = SearchSpace((cx - 0.03, cx + 0.03), (cy - 0.03, cy + 0.03), 0.01, FULL_CIRCLE, math.radians(30))
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
     grid = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(refine=False)).estimate(*args)
-    fine = Engine(scene.mesh, caffe_weights, DEVICE).estimate(*args)
-    grid_yaw_err = math.degrees(_ang(grid.yaw_rad, gyaw))
-    assert grid_yaw_err > 1.0  # so the test shows the refinement at work
+    # Yaw target 3 deg keeps the test's cell small (11 x 11 x 21 poses); x/y at the default 2 mm.
+    cfg = EngineConfig(refine_yaw_rad=math.radians(3.0))
+    fine = Engine(scene.mesh, caffe_weights, DEVICE, cfg).estimate(*args)
+    assert math.degrees(_ang(grid.yaw_rad, gyaw)) > 3.0  # so the test shows the refinement at work
     assert abs(fine.x_m - gx) <= 0.002 and abs(fine.y_m - gy) <= 0.002
-    assert math.degrees(_ang(fine.yaw_rad, gyaw)) <= 1.0
+    assert math.degrees(_ang(fine.yaw_rad, gyaw)) <= 3.0 and 0 <= fine.yaw_rad < 2 * math.pi
     ref = fine.info["refine"]
     assert fine.score > grid.score and ref["score_gain"] == pytest.approx(fine.score - grid.score)
     assert (ref["from"]["x_m"], ref["from"]["y_m"]) == (grid.x_m, grid.y_m)
+
+    # The independent reference: every pose of the cell scored by the exhaustive search.
+    cell = cell_space(space, grid.x_m, grid.y_m, grid.yaw_rad, 0.002, math.radians(3.0))
+    ex_cfg = EngineConfig(search="exhaustive", refine=False, top_k=1)
+    ex = Engine(scene.mesh, caffe_weights, DEVICE, ex_cfg).estimate(
+        scene.image, scene.camera, scene.table, scene.resting, cell
+    )
+    assert ref["candidates"] == len(cell) == ex.n_candidates
+    assert (fine.x_m, fine.y_m) == pytest.approx((ex.x_m, ex.y_m), abs=1e-12)
+    assert _ang(fine.yaw_rad, ex.yaw_rad) < 1e-9 and fine.score == pytest.approx(ex.score, abs=1e-6)
     # The grid search itself is unchanged, and its counters do not include the refinement's.
     assert (fine.n_scored, fine.info["rays"]) == (grid.n_scored, grid.info["rays"])
     assert ref["rays"] > 0 and "refine" in fine.timings_s

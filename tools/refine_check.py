@@ -1,17 +1,16 @@
-"""Does the refinement find the best pose at its final resolution? For every target of an eval run,
-an exhaustive search at that resolution over the cell around the grid's best, against the refined pose.
+"""Does the refinement find the best fine pose near the grid's best? For every target of an eval run,
+an exhaustive search at the refinement's resolution over a window wider than its cell, against the refined pose.
 
-    python tools/refine_check.py EVAL_OUT [--step-xy 0.002] [--step-yaw 1] [--out CHECK.json]
+    python tools/refine_check.py EVAL_OUT [--cells 2] [--limit N] [--out CHECK.json]
 
 EVAL_OUT is a `perch_warp eval` folder made with refinement on (its targets.jsonl records each
-target's refined pose, score and the grid pose the refinement started from) on a BOP dataset
-whose images are found again from its eval_config.json. For each target the tool scores every
-pose of a grid of --step-xy metres and --step-yaw degrees within one grid step of the start
-(x, y ± the eval's --xy-step, yaw ± its --yaw-step, cut to the searched region), with the
-eval's method options and refinement off, and compares: "as good" when the refined score is at
-least the cell's best score (less 1e-6), "same pose" when the two poses lie within one step of
-the check's grid. The refinement is a local climb, so this checks what it can promise: the
-best pose of the grid cell it starts in. Exit 1 on bad input.
+target's refined pose and score and the grid pose it started from) on a BOP dataset whose
+images are found again from its eval_config.json. The refinement searches the best grid pose's
+cell, one grid step either side, at (by default) 2 mm / 1°; here the window is --cells grid
+steps either side, at the same fine steps, with the eval's method options (the pruned search:
+the same best as the exhaustive one). "As good" when the refined score is at least the
+window's best (less 1e-6): the fine optimum did not lie in a neighbouring cell. "Same pose"
+when the two poses are within one fine step. Exit 1 on bad input.
 """
 
 from __future__ import annotations
@@ -29,7 +28,8 @@ from perch_warp.bench import load_workload
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
 from perch_warp.features import load_feature_weights
-from perch_warp.search_space import SearchSpace
+from perch_warp.refine import cell_space
+from perch_warp.search_space import FULL_CIRCLE, SearchSpace
 
 SCORE_TOL = 1e-6  # float32 cosines: equal scores can differ in the last places
 
@@ -38,7 +38,7 @@ def _yaw_diff_deg(a_rad: float, b_rad: float) -> float:
     return abs(math.degrees((a_rad - b_rad + math.pi) % (2 * math.pi) - math.pi))
 
 
-def check(eval_out: Path, step_xy_m: float, step_yaw_deg: float, device: str, log=print) -> dict:
+def check(eval_out: Path, cells: int, device: str, limit: int | None = None, log=print) -> dict:
     cfg_path, jl_path = eval_out / "eval_config.json", eval_out / "targets.jsonl"
     for p in (cfg_path, jl_path):
         if not p.is_file():
@@ -47,7 +47,7 @@ def check(eval_out: Path, step_xy_m: float, step_yaw_deg: float, device: str, lo
     opt = cfg["options"]
     if not opt.get("refine", False):
         raise PerchError(f"{eval_out} was made without refinement (its options have no refine: true)")
-    targets = [json.loads(line) for line in jl_path.read_text().splitlines() if line.strip()]
+    targets = [json.loads(line) for line in jl_path.read_text().splitlines() if line.strip()][:limit]
     config = EngineConfig(
         stride=opt["stride"],
         alpha=opt["alpha"],
@@ -56,8 +56,9 @@ def check(eval_out: Path, step_xy_m: float, step_yaw_deg: float, device: str, lo
         relu=opt["relu"],
         image_scale=opt["image_scale"],
         cpu_threads=opt.get("cpu_threads"),
-        search="exhaustive",
+        search="pruned",
         refine=False,
+        top_k=1,
     )
     weights = load_feature_weights(opt["weights"])
     grid_xy, grid_yaw = opt["xy_step"], math.radians(opt["yaw_step"])
@@ -74,18 +75,10 @@ def check(eval_out: Path, step_xy_m: float, step_yaw_deg: float, device: str, lo
             engines[t["obj_id"]] = Engine(w.mesh, weights, device, config)
         x0, y0, yaw0 = ref["from"]["x_m"], ref["from"]["y_m"], math.radians(ref["from"]["yaw_deg"])
         (rx0, rx1), (ry0, ry1) = t["details"]["region_m"]
-        k = round(grid_xy / step_xy_m)  # the check's grid steps per eval grid step, so both grids meet at the start
-        kyaw = round(grid_yaw / math.radians(step_yaw_deg))
-        xs = x0 + step_xy_m * np.arange(-k, k + 1)
-        ys = y0 + step_xy_m * np.arange(-k, k + 1)
-        xs, ys = xs[(xs >= rx0 - 1e-9) & (xs <= rx1 + 1e-9)], ys[(ys >= ry0 - 1e-9) & (ys <= ry1 + 1e-9)]
-        space = SearchSpace(
-            (float(xs[0]), float(xs[-1])),
-            (float(ys[0]), float(ys[-1])),
-            step_xy_m,
-            (yaw0 - kyaw * math.radians(step_yaw_deg), yaw0 + kyaw * math.radians(step_yaw_deg)),
-            math.radians(step_yaw_deg),
-        )
+        # The window is the cell of a grid `cells` times coarser, at the refinement's fine steps.
+        wide = SearchSpace((rx0, rx1), (ry0, ry1), cells * grid_xy, FULL_CIRCLE, cells * grid_yaw)
+        space = cell_space(wide, x0, y0, yaw0, opt["refine_xy"], math.radians(opt["refine_yaw"]))
+        step_xy_m, step_yaw_deg = space.xy_step_m, math.degrees(space.yaw_step_rad)
         t0 = time.perf_counter()
         best = engines[t["obj_id"]].estimate(w.image, w.camera, w.table, w.resting, space).best
         refined = t["details"]["top_k"][0]
@@ -96,9 +89,11 @@ def check(eval_out: Path, step_xy_m: float, step_yaw_deg: float, device: str, lo
             "im_id": t["im_id"],
             "obj_id": t["obj_id"],
             "candidates": len(space),
+            "step_xy_m": step_xy_m,
+            "step_yaw_deg": step_yaw_deg,
             "refined": refined,
             "refine_evaluated": ref["evaluated"],
-            "cell_best": {"x_m": best.x_m, "y_m": best.y_m, "yaw_rad": best.yaw_rad, "score": best.score},
+            "window_best": {"x_m": best.x_m, "y_m": best.y_m, "yaw_rad": best.yaw_rad, "score": best.score},
             "as_good": refined["score"] >= best.score - SCORE_TOL,
             "same_pose": dxy <= step_xy_m * (1 + 1e-6) and dyaw <= step_yaw_deg * (1 + 1e-6),
             "dxy_m": dxy,
@@ -108,15 +103,14 @@ def check(eval_out: Path, step_xy_m: float, step_yaw_deg: float, device: str, lo
         rows.append(row)
         log(
             f"[{n}/{len(targets)}] scene {t['scene_id']} image {t['im_id']} obj {t['obj_id']}: refined "
-            f"{refined['score']:.5f}, cell best {best.score:.5f} over {len(space)} poses "
+            f"{refined['score']:.5f}, window best {best.score:.5f} over {len(space)} poses "
             f"({dxy * 1000:.1f} mm, {dyaw:.1f} deg apart), {row['seconds']:.1f} s"
         )
     n = len(rows)
     return {
         "eval_out": str(eval_out),
         "device": device,
-        "step_xy_m": step_xy_m,
-        "step_yaw_deg": step_yaw_deg,
+        "cells": cells,
         "targets": n,
         "as_good": sum(r["as_good"] for r in rows),
         "same_pose": sum(r["same_pose"] for r in rows),
@@ -129,23 +123,23 @@ def check(eval_out: Path, step_xy_m: float, step_yaw_deg: float, device: str, lo
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("eval_out", type=Path, help="a `perch_warp eval` output folder made with refinement on")
-    ap.add_argument("--step-xy", type=float, default=0.002, help="the check's x/y step, m (default 0.002)")
-    ap.add_argument("--step-yaw", type=float, default=1.0, help="the check's yaw step, degrees (default 1)")
+    ap.add_argument("--cells", type=int, default=2, help="window: grid steps either side of the grid pose (2)")
+    ap.add_argument("--limit", type=int, default=None, help="only the first N targets of the run")
     ap.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
     ap.add_argument("--out", type=Path, default=None, help="write the per-target figures here as JSON")
     args = ap.parse_args(argv)
     try:
-        if not (args.step_xy > 0 and args.step_yaw > 0):
-            raise PerchError(f"--step-xy and --step-yaw must be positive, got {args.step_xy} and {args.step_yaw}")
-        r = check(args.eval_out, args.step_xy, args.step_yaw, args.device)
+        if args.cells < 1 or (args.limit is not None and args.limit < 1):
+            raise PerchError(f"--cells and --limit must be at least 1, got {args.cells} and {args.limit}")
+        r = check(args.eval_out, args.cells, args.device, args.limit)
     except PerchError as e:
         print(f"refine_check: {e}", file=sys.stderr)
         return 1
     n = r["targets"]
     print(
-        f"refined score >= the best of an exhaustive {args.step_xy * 1000:g} mm / {args.step_yaw:g} deg search of "
-        f"its cell: {r['as_good']} / {n}; pose within one step of it: {r['same_pose']} / {n} "
-        f"(refinement scored {r['refine_evaluated_mean']:.0f} poses, the cell search {r['cell_candidates_mean']:.0f})"
+        f"refined score >= the best of a search at its resolution over {args.cells} grid steps either side: "
+        f"{r['as_good']} / {n}; pose within one fine step of it: {r['same_pose']} / {n} "
+        f"(refinement scored {r['refine_evaluated_mean']:.0f} poses, the window {r['cell_candidates_mean']:.0f})"
     )
     if args.out:
         args.out.write_text(json.dumps(r, indent=1) + "\n")
