@@ -123,8 +123,8 @@ def test_engine_counts_the_rendered_box_areas(random_weights):
     gx, gy, _ = sc.truth_xy_yaw
     space = SearchSpace((gx - 0.02, gx + 0.02), (gy - 0.02, gy + 0.02), 0.02, (0, 2 * math.pi), math.radians(90))
     args = (sc.image, sc.camera, sc.table, sc.resting, space)
-    one = Engine(sc.mesh, random_weights, "cpu").estimate(*args)
-    many = Engine(sc.mesh, random_weights, "cpu", EngineConfig(batch_pixels=3000)).estimate(*args)
+    one = Engine(sc.mesh, random_weights, "cpu", EngineConfig(refine=False)).estimate(*args)
+    many = Engine(sc.mesh, random_weights, "cpu", EngineConfig(batch_pixels=3000, refine=False)).estimate(*args)
     assert one.n_scored == len(space)  # every candidate was rendered
     # Independently: each candidate's box bounds the projection of all mesh vertices.
     x, y, yaw = space.candidates()
@@ -137,7 +137,7 @@ def test_engine_counts_the_rendered_box_areas(random_weights):
 
 def test_bench_writes_the_promised_report(shared, caffe_weights, tmp_path, monkeypatch, capsys):
     monkeypatch.setitem(sys.modules, "open3d", None)  # the peer must then be reported as skipped, not dropped
-    args = ["bench", "--device", "cpu", "--clip", "0.04", "--xy-step", "0.02", "--yaw-step", "1.6"]
+    args = ["bench", "--device", "cpu", "--clip", "0.04", "--xy-step", "0.02", "--yaw-step", "1.6", "--no-refine"]
     args += ["--image-scale", "0.25", "--ray-poses", "2", "--min-time", "0", "--out", str(tmp_path)]
     assert main(args) == 0
     out = capsys.readouterr().out
@@ -147,7 +147,8 @@ def test_bench_writes_the_promised_report(shared, caffe_weights, tmp_path, monke
     for key in ("device", "device_name", "commit", "command", "settings", "search", "memory", "raycast", "setup_s"):
         assert key in r, key
     s = r["search"]
-    assert set(bench.STAGES) - {"bound"} <= set(s["timings_s_mean"])  # "bound": the pruned search's only
+    # "bound": the pruned search's only; "refine": not with --no-refine
+    assert set(bench.STAGES) - {"bound", "refine"} <= set(s["timings_s_mean"])
     assert (
         s["candidates_in_space"] == s["candidates_evaluated"] > 0
         and 0 < s["candidates_scored"] <= s["candidates_in_space"]

@@ -99,7 +99,7 @@ def test_pruned_search_returns_the_exhaustive_top_k_scoring_fewer(scene, caffe_w
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
 
     def run(search):
-        config = EngineConfig(search=search, top_k=5, batch_pixels=20000, cpu_threads=threads)
+        config = EngineConfig(search=search, top_k=5, batch_pixels=20000, cpu_threads=threads, refine=False)
         return Engine(scene.mesh, caffe_weights, DEVICE, config).estimate(*args)
 
     full, pruned = run("exhaustive"), run("pruned")
@@ -142,7 +142,9 @@ def test_pyramid_bounds_change_nothing_but_the_work(scene, caffe_weights):
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
 
     def run(bounds: bool):
-        config = EngineConfig(search="coarse-to-fine", beam=8, top_k=5, pyramid_bounds=bounds, batch_pixels=20000)
+        config = EngineConfig(
+            search="coarse-to-fine", beam=8, top_k=5, pyramid_bounds=bounds, batch_pixels=20000, refine=False
+        )
         return Engine(scene.mesh, caffe_weights, DEVICE, config).estimate(*args)
 
     plain, bounded = run(False), run(True)

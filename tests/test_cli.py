@@ -42,6 +42,7 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     d, sc = scene_dir
     out, png = tmp_path / "r.json", tmp_path / "o.png"
     args = _args(d, *_search_around(sc), "--weights", "caffe", "--out", str(out), "--overlay", str(png))
+    args += ["--refine-yaw", "3"]  # a smaller cell than the default 1 deg (11 x 11 x 21 poses)
     args += ["--truth", str(d / "scene_gt.json"), "--obj-id", "1"]
     assert main(args) == 0
     res = json.loads(out.read_text())
@@ -53,7 +54,7 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     stdout = capsys.readouterr().out
     # On the CPU the default search is the pruned one, and the summary says it was chosen automatically.
     assert "pose: x =" in stdout and "search: pruned (auto on cpu), scored " in stdout
-    assert "refined below the grid: the best pose's cell at 2 mm / 1°" in stdout and res["refine"]["evaluated"] > 0
+    assert "refined below the grid: the best pose's cell at 2 mm / 3°" in stdout and res["refine"]["evaluated"] > 0
 
     # The exhaustive search, on two CPU threads: the same poses and scores, every candidate scored.
     out2 = tmp_path / "r2.json"
@@ -70,6 +71,8 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
                 "exhaustive",
                 "--cpu-threads",
                 "2",
+                "--refine-yaw",
+                "3",
             )
         )
         == 0

@@ -54,9 +54,9 @@ def test_same_answer_twice_and_for_any_batch_size(scene, random_weights):
     gx, gy, _ = scene.truth_xy_yaw
     space = _space_around(gx, gy, half=0.02, yaw_step_deg=45.0)
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
-    a = Engine(scene.mesh, random_weights, DEVICE).estimate(*args)
-    b = Engine(scene.mesh, random_weights, DEVICE).estimate(*args)
-    c = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(batch_pixels=5000)).estimate(*args)
+    a = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(refine=False)).estimate(*args)
+    b = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(refine=False)).estimate(*args)
+    c = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(batch_pixels=5000, refine=False)).estimate(*args)
     assert c.info["batches"] > a.info["batches"]
     for other in (b, c):
         assert [(k.x_m, k.y_m, k.yaw_rad) for k in other.top_k] == [(k.x_m, k.y_m, k.yaw_rad) for k in a.top_k]
@@ -69,7 +69,9 @@ def test_cpu_threads_give_the_same_scores_as_one(scene, random_weights):
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
 
     def run(threads):
-        config = EngineConfig(batch_pixels=5000, top_k=len(space), cpu_threads=threads, search="exhaustive")
+        config = EngineConfig(
+            batch_pixels=5000, top_k=len(space), cpu_threads=threads, search="exhaustive", refine=False
+        )
         return Engine(scene.mesh, random_weights, DEVICE, config).estimate(*args)
 
     one, two = run(1), run(2)
@@ -95,7 +97,7 @@ def test_real_frame_potted_meat_can(shared, caffe_weights):
     resting, gx, gy, _ = decompose_on_table(table, R_gt, t_gt)
     mesh = load_mesh(shared / "data" / "ycbv" / "models" / "obj_000009.obj")
     space = _space_around(gx, gy, half=0.03, yaw_step_deg=15.0)
-    r = Engine(mesh, caffe_weights, DEVICE).estimate(image, camera, table, resting, space)
+    r = Engine(mesh, caffe_weights, DEVICE, EngineConfig(refine=False)).estimate(image, camera, table, resting, space)
     assert adi(r.T_m2c[:3, :3], r.T_m2c[:3, 3], R_gt, t_gt, mesh.vertices_m) < 0.02
 
 
@@ -103,8 +105,8 @@ def test_coarse_to_fine_scores_a_subset_and_matches_exhaustive_here(scene, caffe
     gx, gy, _ = scene.truth_xy_yaw
     space = _space_around(gx, gy, half=0.06, yaw_step_deg=15.0)
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
-    ex = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(search="exhaustive")).estimate(*args)
-    cfg = EngineConfig(search="coarse-to-fine", coarse_xy_m=0.04, coarse_yaw_rad=math.radians(45), beam=4)
+    ex = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(search="exhaustive", refine=False)).estimate(*args)
+    cfg = EngineConfig(search="coarse-to-fine", coarse_xy_m=0.04, coarse_yaw_rad=math.radians(45), beam=4, refine=False)
     c2f = Engine(scene.mesh, caffe_weights, DEVICE, cfg).estimate(*args)
     assert c2f.info["evaluated"] < len(space) / 3
     assert (c2f.x_m, c2f.y_m, c2f.yaw_rad) == (ex.x_m, ex.y_m, ex.yaw_rad)
@@ -114,7 +116,7 @@ def test_coarse_to_fine_scores_a_subset_and_matches_exhaustive_here(scene, caffe
 def test_half_scale_search_finds_the_pose_too(scene, caffe_weights):
     gx, gy, gyaw = scene.truth_xy_yaw
     space = _space_around(gx, gy)
-    cfg = EngineConfig(image_scale=0.5)
+    cfg = EngineConfig(image_scale=0.5, refine=False)
     r = Engine(scene.mesh, caffe_weights, DEVICE, cfg).estimate(
         scene.image, scene.camera, scene.table, scene.resting, space
     )
