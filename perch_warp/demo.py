@@ -411,8 +411,15 @@ def run(args: argparse.Namespace) -> int:
         f"estimate: x = {b.x_m:+.4f} m, y = {b.y_m:+.4f} m, yaw = {math.degrees(b.yaw_rad):6.1f} deg, "
         f"score {b.score:.3f}"
     )
+    ref = result.info.get("refine")
     print(
         f"error: ADD-S {adds * 100:.2f} cm, yaw {yaw_err:.1f} deg -> {'within' if ok else 'NOT within'} one grid step"
+        + (
+            f" ({step * 100:g} cm, {args.yaw_step:g} deg; refined below it at {ref['step_xy_m'] * 1000:.3g} mm, "
+            f"{ref['step_yaw_deg']:.3g} deg steps)"
+            if ref
+            else ""
+        )
     )
     print(timing_line(result))
     print(f"wrote {out}/overlay.png, {out}/result.json and the scene files; rerun the search with:")

@@ -153,9 +153,7 @@ class Engine:
     @property
     def search(self) -> str:
         """The search this engine runs: the config's, with "auto" resolved for the device."""
-        if self.config.search != "auto":
-            return self.config.search
-        return "pruned" if wp.get_device(self.device).is_cpu else "exhaustive"
+        return self.config.search if self.config.search != "auto" else _auto_search(self.device)
 
     def render(self, camera: Camera, T_m2c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Full-image rendering of one pose: RGB float32 (H, W, 3) in [0, 1], mask bool (H, W)."""
@@ -249,7 +247,8 @@ class Engine:
         inner: dict[str, float] = {}
         x0, y0, yaw0, s0 = top[0]
         cell = cell_space(space, x0, y0, yaw0, cfg.refine_xy_m, cfg.refine_yaw_rad)
-        search = "pruned" if self.search == "pruned" else "exhaustive"
+        # The same best either way; after coarse-to-fine, the one "auto" picks for the device.
+        search = self.search if self.search in ("exhaustive", "pruned") else _auto_search(self.device)
         if search == "pruned":
             x, y, yaw, scores, _ = self._pruned(photo, camera, table, resting, cell, inner)
         else:
@@ -608,6 +607,11 @@ class Engine:
         ii, rest = np.divmod(flat, ny * nk)
         jj, kk = np.divmod(rest, nk)
         return xs[ii], ys[jj], yaws[kk], sc, levels
+
+
+def _auto_search(device: str) -> str:
+    """What --search auto runs: pruned on the CPU (measured faster there), exhaustive on a GPU (not measured)."""
+    return "pruned" if wp.get_device(device).is_cpu else "exhaustive"
 
 
 @contextmanager
