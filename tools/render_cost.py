@@ -1,0 +1,212 @@
+"""Where does a render's time go? The renderer's kernel against ray-only variants, on the same rays.
+
+    python tools/render_cost.py [--device cpu] [--poses 300] [--seed 0] [--out render_cost.json]
+
+Poses drawn at random from the reference workload's grid (ycbv test scene 2 image 1, potted
+meat can, visible table clipped to 1 m, 1 cm / 0.1 rad); their boxes are cast four ways, each
+launch timed after a warm-up launch (kernel build), best of --repeat:
+
+- render: kernel #1 as the engine runs it (closest hit, texture lookup, colour and mask);
+- closest hit only: the same traversal, writing only the mask;
+- any hit: `wp.mesh_query_ray_anyhit` (the silhouette alone, as the bound pass needs);
+- closest hit with an oracle max_t: each ray's own hit distance (+0.01 %) as the query's limit,
+  the best that carrying a neighbouring pixel's hit distance could do.
+
+Also: the fraction of box pixels that the 11x11 windows of on-mask stride-4 feature points read
+(the most that rendering only the windows' pixels could save). All kernels must agree on the mask.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+from perch_warp.kernels.render import find_candidate, pixel_ray_m
+
+from perch_warp.bench import add_frame_arguments, default_dataset, git_commit, load_workload
+from perch_warp.features import caffe_weights_path
+from perch_warp.render import MeshRenderer, camera_in_model, flat_offsets, project_boxes
+from perch_warp.table import model_to_camera
+
+
+@wp.func
+def box_ray(
+    pix_off: wp.array(dtype=wp.int32),
+    box: wp.array(dtype=wp.vec4i),
+    n_cand: int,
+    i: int,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    rot_c2m: wp.array(dtype=wp.mat33),
+):
+    """Candidate c of flat pixel i and its ray's direction (model frame), as kernel #1 computes them."""
+    c = find_candidate(pix_off, n_cand, i)
+    b = box[c]
+    local = i - pix_off[c]
+    return c, pixel_ray_m(b[0] + local % b[2], b[1] + local // b[2], fx, fy, cx, cy, rot_c2m[c])
+
+
+@wp.kernel(enable_backward=False)
+def closest_hit_only(
+    mesh: wp.uint64,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    rot_c2m: wp.array(dtype=wp.mat33),
+    origin_m: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4i),
+    pix_off: wp.array(dtype=wp.int32),
+    n_cand: int,
+    max_t: wp.array(dtype=float),
+    out_t: wp.array(dtype=float),
+):
+    i = wp.tid()
+    c, d = box_ray(pix_off, box, n_cand, i, fx, fy, cx, cy, rot_c2m)
+    q = wp.mesh_query_ray(mesh, origin_m[c], d, max_t[i])
+    out_t[i] = wp.where(q.result, q.t, -1.0)
+
+
+@wp.kernel(enable_backward=False)
+def any_hit(
+    mesh: wp.uint64,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    rot_c2m: wp.array(dtype=wp.mat33),
+    origin_m: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4i),
+    pix_off: wp.array(dtype=wp.int32),
+    n_cand: int,
+    out_mask: wp.array(dtype=wp.uint8),
+):
+    i = wp.tid()
+    c, d = box_ray(pix_off, box, n_cand, i, fx, fy, cx, cy, rot_c2m)
+    out_mask[i] = wp.where(wp.mesh_query_ray_anyhit(mesh, origin_m[c], d, 1.0e6), wp.uint8(1), wp.uint8(0))
+
+
+def window_fraction(mask: np.ndarray, boxes: np.ndarray, pix_off: np.ndarray, ks: int = 11, stride: int = 4) -> float:
+    """Share of box pixels inside the ks x ks window of some on-mask feature point (grid u = ks//2 + stride*k)."""
+    half = ks // 2
+    need = total = 0
+    for c, (x0, y0, w, h) in enumerate(boxes.tolist()):
+        m = mask[pix_off[c] : pix_off[c + 1]].reshape(h, w).astype(bool)
+        us = [u for u in range(x0, x0 + w) if u >= half and (u - half) % stride == 0]
+        vs = [v for v in range(y0, y0 + h) if v >= half and (v - half) % stride == 0]
+        nd = np.zeros_like(m)
+        for v in vs:
+            for u in us:
+                if m[v - y0, u - x0]:
+                    nd[max(0, v - half - y0) : v + half + 1 - y0, max(0, u - half - x0) : u + half + 1 - x0] = True
+        need += int(nd.sum())
+        total += w * h
+    return need / total
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_frame_arguments(ap)
+    ap.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
+    ap.add_argument("--poses", type=int, default=300, help="random poses of the reference grid (default 300)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--repeat", type=int, default=2, help="timed launches per variant, best kept (default 2)")
+    ap.add_argument("--out", type=Path, default=None, help="write the figures here as JSON")
+    args = ap.parse_args(argv)
+    dataset = args.dataset or default_dataset()
+    if dataset is None or caffe_weights_path() is None:
+        print("render_cost: shared/data/ycbv not found (set PERCH_WARP_SHARED)", file=sys.stderr)
+        return 1
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    w = load_workload(dataset, args.scene, args.image, args.obj, 1.0, 0.01, 0.1)
+    x, y, yaw = w.space.candidates()
+    pick = np.random.default_rng(args.seed).choice(len(x), min(args.poses, len(x)), replace=False)
+    R, t = model_to_camera(w.table, w.resting, x[pick], y[pick], yaw[pick])
+    boxes = project_boxes(w.camera, w.mesh.hull_points_m(), R, t)
+    keep = boxes[:, 2] * boxes[:, 3] > 0
+    R, t, boxes = R[keep], t[keep], boxes[keep]
+    renderer = MeshRenderer(w.mesh, args.device)
+    cam = w.camera
+    pix_off = flat_offsets(boxes)
+    n = int(pix_off[-1])
+    R_c2m, origin_m = camera_in_model(R, t)
+    with wp.ScopedDevice(args.device):
+        common = [
+            renderer.wp_mesh.id,
+            cam.fx,
+            cam.fy,
+            cam.cx,
+            cam.cy,
+            wp.array(R_c2m, dtype=wp.mat33),
+            wp.array(origin_m, dtype=wp.vec3),
+            wp.array(boxes, dtype=wp.vec4i),
+            wp.array(pix_off, dtype=wp.int32),
+            len(boxes),
+        ]
+
+        def timed(fn) -> float:
+            fn()  # warm-up: builds the kernel
+            wp.synchronize_device(args.device)
+            best = float("inf")
+            for _ in range(args.repeat):
+                t0 = time.perf_counter()
+                fn()
+                wp.synchronize_device(args.device)
+                best = min(best, time.perf_counter() - t0)
+            return best
+
+        out: dict = {}
+        out["render"] = timed(lambda: out.__setitem__("batch", renderer.render(cam, R, t, boxes)))
+        mask = out.pop("batch").mask.numpy()
+        far = wp.full(n, 1.0e6, dtype=float)
+        t_hit = wp.empty(n, dtype=float)
+        out["closest_hit_only"] = timed(lambda: wp.launch(closest_hit_only, n, inputs=[*common, far], outputs=[t_hit]))
+        th = t_hit.numpy()
+        oracle = wp.array(np.where(th > 0, th * 1.0001, 1.0e6).astype(np.float32), dtype=float)
+        t_hit2 = wp.empty(n, dtype=float)
+        out["closest_hit_oracle_max_t"] = timed(
+            lambda: wp.launch(closest_hit_only, n, inputs=[*common, oracle], outputs=[t_hit2])
+        )
+        m_any = wp.empty(n, dtype=wp.uint8)
+        out["any_hit"] = timed(lambda: wp.launch(any_hit, n, inputs=common, outputs=[m_any]))
+    agree = {
+        "closest_hit_only": float(((th > 0) == (mask > 0)).mean()),
+        "closest_hit_oracle_max_t": float(((t_hit2.numpy() > 0) == (mask > 0)).mean()),
+        "any_hit": float((m_any.numpy() == mask).mean()),
+    }
+    report = {
+        "device": args.device,
+        "commit": git_commit(),
+        "command": " ".join(["python", "tools/render_cost.py", *sys.argv[1:]]),
+        "mesh_faces": int(len(w.mesh.faces)),
+        "poses": int(len(boxes)),
+        "rays": n,
+        "hit_fraction": float((mask > 0).mean()),
+        "seconds": {k: out[k] for k in ("render", "closest_hit_only", "any_hit", "closest_hit_oracle_max_t")},
+        "mask_agreement_with_render": agree,
+        "window_pixel_fraction": window_fraction(mask, boxes, pix_off),
+    }
+    print(
+        f"{report['poses']} poses, {n:,} rays ({100 * report['hit_fraction']:.1f} % hit), "
+        f"mesh {report['mesh_faces']} faces, {args.device}, commit {report['commit']}"
+    )
+    for k, s in report["seconds"].items():
+        print(f"  {k:<26}{s:8.3f} s  {n / s / 1e6:6.2f} M rays/s  ({s / report['seconds']['render']:.2f}x render)")
+    print(f"  mask agreement with render: {agree}")
+    print(f"  box pixels read by on-mask feature windows: {100 * report['window_pixel_fraction']:.1f} %")
+    if args.out:
+        args.out.write_text(json.dumps(report, indent=1) + "\n")
+    ok = all(v == 1.0 for v in agree.values())
+    return 0 if ok else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
