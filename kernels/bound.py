@@ -42,8 +42,10 @@ def rarity_under_silhouette(
     if not in_box(rb, u, v):
         out[i] = NOT_ON_MASK
         return
-    q = wp.mesh_query_ray(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6)
-    if not q.result:
+    # Any hit, not the closest: Warp's any-hit query runs the same ray-triangle test over the same
+    # range [0, max_t) as kernel #1's closest-hit query, so it hits exactly when that one does, and
+    # stops at the first triangle (about half the traversal, tools/render_cost.py).
+    if not wp.mesh_query_ray_anyhit(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6):
         out[i] = NOT_ON_MASK
         return
     if not in_box(wp.vec4i(0, 0, rarity.shape[1], rarity.shape[0]), gx, gy):  # beyond the photo, as in kernel #2
