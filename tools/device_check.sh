@@ -34,9 +34,9 @@ step() {
 }
 
 step kernel_tests env PERCH_WARP_TEST_DEVICE="$DEV" python3 -m pytest -q -p no:cacheprovider \
-  tests/test_render.py tests/test_features.py tests/test_score.py tests/test_bound.py tests/test_engine.py
+  tests/test_render.py tests/test_features.py tests/test_score.py tests/test_bound.py tests/test_engine.py tests/test_refine.py
 for s in exhaustive pruned coarse-to-fine; do
   step "bench_$s" python3 -m perch_warp bench --device "$DEV" --search "$s" --repeat 3 --no-peer --out "$OUT/bench_$s"
 done
 step bvh_options python3 tools/bvh_options.py --device "$DEV" --poses 3000 --leaf-sizes 1 2 4 8
-grep -h -E "^(commit|search|total|candidates|throughput|pose found)" "$OUT"/bench_*/bench.txt 2>/dev/null
+grep -h -E "^(commit|search|total|refine|candidates|throughput|refinement|pose found)" "$OUT"/bench_*/bench.txt 2>/dev/null
