@@ -255,7 +255,9 @@ class Engine:
             x, y, yaw = cell.candidates()
             scores = self._score(photo, camera, table, resting, x, y, yaw, inner)
         i = int(np.argmax(scores))  # the first of equal maxima
-        best = (float(x[i]), float(y[i]), float(yaw[i]) % (2 * math.pi), float(scores[i]))
+        full = space.yaw_range_rad[1] - space.yaw_range_rad[0] >= 2 * math.pi - 1e-9
+        # A cell may reach below 0 on the full circle: the same poses as below 2π, reported there.
+        best = (float(x[i]), float(y[i]), float(yaw[i]) % (2 * math.pi) if full else float(yaw[i]), float(scores[i]))
         info = {
             "step_xy_m": cell.xy_step_m,
             "step_yaw_deg": math.degrees(cell.yaw_step_rad),
