@@ -68,6 +68,13 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--refine-xy", type=float, default=0.002, help="refinement's x/y step at most, m (default: 0.002)")
     g.add_argument("--refine-yaw", type=float, default=1.0, help="refinement's yaw step at most, deg (default: 1)")
     g.add_argument(
+        "--refine-cells",
+        type=int,
+        default=1,
+        help="grid steps either side of the best grid pose that the refinement searches (default: 1; "
+        "2 catches narrow score peaks between grid poses at about 7x the cost)",
+    )
+    g.add_argument(
         "--image-scale",
         type=float,
         default=1.0,
@@ -123,6 +130,7 @@ def engine_config_from_args(args: argparse.Namespace):
         refine=args.refine,
         refine_xy_m=args.refine_xy,
         refine_yaw_rad=math.radians(args.refine_yaw),
+        refine_cells=args.refine_cells,
     )
 
 

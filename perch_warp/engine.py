@@ -68,6 +68,7 @@ class EngineConfig:
     refine: bool = True
     refine_xy_m: float = 0.002
     refine_yaw_rad: float = math.radians(1.0)
+    refine_cells: int = 1  # grid steps either side of the best grid pose that the refinement searches
 
     def __post_init__(self) -> None:
         if not (0.0 < self.alpha <= 1.0) or not math.isfinite(self.alpha):
@@ -89,6 +90,8 @@ class EngineConfig:
                 "refinement targets (--refine-xy, --refine-yaw) must be positive, "
                 f"got {self.refine_xy_m} m and {math.degrees(self.refine_yaw_rad)} deg"
             )
+        if self.refine_cells < 1:
+            raise PerchError(f"refine_cells (--refine-cells) must be at least 1, got {self.refine_cells}")
         if self.cpu_threads is not None and self.cpu_threads < 1:
             raise PerchError(
                 f"cpu_threads (--cpu-threads) must be at least 1, or None for one per core; got {self.cpu_threads}"
@@ -246,7 +249,7 @@ class Engine:
         counters = (self._n_batches, self._n_rays, self._n_bound_rays)
         inner: dict[str, float] = {}
         x0, y0, yaw0, s0 = top[0]
-        cell = cell_space(space, x0, y0, yaw0, cfg.refine_xy_m, cfg.refine_yaw_rad)
+        cell = cell_space(space, x0, y0, yaw0, cfg.refine_xy_m, cfg.refine_yaw_rad, cfg.refine_cells)
         # The same best either way; after coarse-to-fine, the one "auto" picks for the device.
         search = self.search if self.search in ("exhaustive", "pruned") else _auto_search(self.device)
         if search == "pruned":

@@ -1,8 +1,8 @@
 """Refinement below the grid: the best grid pose's cell searched exhaustively at a fine resolution.
 
 The grid search returns the best pose on its lattice (say 1 cm, 5°); the object can sit
-anywhere between lattice points. The refinement searches every pose within one grid step of
-the best grid pose (x, y ± the x/y step, yaw ± the yaw step; table frame, metres and
+anywhere between lattice points. The refinement searches every pose within one grid step
+(`cells`: more) of the best grid pose (x, y ± the x/y step, yaw ± the yaw step; table frame, metres and
 radians) on a finer grid whose steps divide the grid's and are at most the targets (by
 default 2 mm and 1°, issue 5), aligned so that it contains the grid pose itself. Its best is
 the best pose at the fine resolution in that cell, by construction, and never scores below
@@ -32,12 +32,21 @@ def fine_steps(grid_step: float, target: float) -> tuple[float, int]:
 
 
 def cell_space(
-    space: SearchSpace, x_m: float, y_m: float, yaw_rad: float, target_xy_m: float, target_yaw_rad: float
+    space: SearchSpace,
+    x_m: float,
+    y_m: float,
+    yaw_rad: float,
+    target_xy_m: float,
+    target_yaw_rad: float,
+    cells: int = 1,
 ) -> SearchSpace:
-    """The fine grid over the cell of grid pose (x_m, y_m, yaw_rad) of `space`: one grid step either
+    """The fine grid over the cell of grid pose (x_m, y_m, yaw_rad) of `space`: `cells` grid steps either
     side, steps at most the targets, cut to the space's x, y (and, unless the full circle, yaw) ranges."""
+    if cells < 1:
+        raise PerchError(f"the refinement window must reach at least 1 grid step either side, got {cells}")
     sxy, nxy = fine_steps(space.xy_step_m, target_xy_m)
     syaw, nyaw = fine_steps(space.yaw_step_rad, target_yaw_rad)
+    nxy, nyaw = nxy * cells, nyaw * cells
     (x0, x1), (y0, y1) = space.x_range_m, space.y_range_m
 
     def cut(centre: float, lo: float, hi: float, step: float, n: int) -> tuple[float, float]:

@@ -36,6 +36,11 @@ def test_cell_is_one_grid_step_either_side_and_contains_the_grid_pose():
     assert np.min(np.abs(xs - 0.03)) < 1e-12 and np.min(np.abs(ys + 0.12)) < 1e-12
     assert np.min(_ang(yaws, math.radians(40))) < 1e-12
     assert np.allclose(np.diff(yaws), math.radians(1)) and cell.xy_step_m == pytest.approx(0.002)
+    # A wider window: two grid steps either side, the same fine steps.
+    wide = cell_space(space, 0.03, -0.12, math.radians(40), 0.002, math.radians(1), cells=2)
+    assert [len(a) for a in wide.axes()] == [21, 21, 21] and wide.x_range_m == pytest.approx((0.01, 0.05))
+    with pytest.raises(PerchError, match="at least 1 grid step"):
+        cell_space(space, 0.03, -0.12, 0.0, 0.002, 0.01, cells=0)
     # Across 0 degrees the cell keeps going (yaws below 0 are the same poses as below 360).
     cell0 = cell_space(space, 0.03, -0.12, 0.0, 0.002, math.radians(1))
     assert cell0.axes()[2][0] == pytest.approx(math.radians(-5))

@@ -75,9 +75,8 @@ def check(eval_out: Path, cells: int, device: str, limit: int | None = None, log
             engines[t["obj_id"]] = Engine(w.mesh, weights, device, config)
         x0, y0, yaw0 = ref["from"]["x_m"], ref["from"]["y_m"], math.radians(ref["from"]["yaw_deg"])
         (rx0, rx1), (ry0, ry1) = t["details"]["region_m"]
-        # The window is the cell of a grid `cells` times coarser, at the refinement's fine steps.
-        wide = SearchSpace((rx0, rx1), (ry0, ry1), cells * grid_xy, FULL_CIRCLE, cells * grid_yaw)
-        space = cell_space(wide, x0, y0, yaw0, opt["refine_xy"], math.radians(opt["refine_yaw"]))
+        grid = SearchSpace((rx0, rx1), (ry0, ry1), grid_xy, FULL_CIRCLE, grid_yaw)
+        space = cell_space(grid, x0, y0, yaw0, opt["refine_xy"], math.radians(opt["refine_yaw"]), cells)
         step_xy_m, step_yaw_deg = space.xy_step_m, math.degrees(space.yaw_step_rad)
         t0 = time.perf_counter()
         best = engines[t["obj_id"]].estimate(w.image, w.camera, w.table, w.resting, space).best
