@@ -210,7 +210,8 @@ class Engine:
             if bar is not None:
                 bar.close()
 
-        R, tr = model_to_camera(table, resting, *(np.array([c[n] for c in top]) for n in range(3)))
+        tx, ty, tyaw, _ = np.array(top).T  # table frame: metres, metres, radians
+        R, tr = model_to_camera(table, resting, tx, ty, tyaw)
         cands = [Candidate(*c, pose_matrix(R[n], tr[n])) for n, c in enumerate(top)]
         timings["total"] = wall_s
         return Result(
@@ -258,9 +259,9 @@ class Engine:
             x, y, yaw = cell.candidates()
             scores = self._score(photo, camera, table, resting, x, y, yaw, inner)
         i = int(np.argmax(scores))  # the first of equal maxima
-        full = space.yaw_range_rad[1] - space.yaw_range_rad[0] >= 2 * math.pi - 1e-9
         # A cell may reach below 0 on the full circle: the same poses as below 2π, reported there.
-        best = (float(x[i]), float(y[i]), float(yaw[i]) % (2 * math.pi) if full else float(yaw[i]), float(scores[i]))
+        yaw_i = float(yaw[i]) % (2 * math.pi) if space.full_circle else float(yaw[i])
+        best = (float(x[i]), float(y[i]), yaw_i, float(scores[i]))
         info = {
             "step_xy_m": cell.xy_step_m,
             "step_yaw_deg": math.degrees(cell.yaw_step_rad),
@@ -519,7 +520,7 @@ class Engine:
         cfg = self.config
         xs, ys, yaws = space.axes()
         nx, ny, nk = len(xs), len(ys), len(yaws)
-        wrap = space.yaw_range_rad[1] - space.yaw_range_rad[0] >= 2 * math.pi - 1e-9
+        wrap = space.full_circle
         f_xy = max(1, round(cfg.coarse_xy_m / space.xy_step_m))
         f_yaw = max(1, round(cfg.coarse_yaw_rad / space.yaw_step_rad))
         steps = [(f_xy, f_yaw)]

@@ -56,6 +56,6 @@ def cell_space(
         return centre + step * int(inside[0]), centre + step * int(inside[-1])
 
     yaw_lo, yaw_hi = yaw_rad - syaw * nyaw, yaw_rad + syaw * nyaw
-    if space.yaw_range_rad[1] - space.yaw_range_rad[0] < 2 * math.pi - 1e-9:
+    if not space.full_circle:
         yaw_lo, yaw_hi = cut(yaw_rad, *space.yaw_range_rad, syaw, nyaw)
     return SearchSpace(cut(x_m, x0, x1, sxy, nxy), cut(y_m, y0, y1, sxy, nxy), sxy, (yaw_lo, yaw_hi), syaw)

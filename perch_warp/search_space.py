@@ -38,12 +38,17 @@ class SearchSpace:
     yaw_range_rad: tuple[float, float] = FULL_CIRCLE
     yaw_step_rad: float = math.radians(5.0)
 
+    @property
+    def full_circle(self) -> bool:
+        """Whether the yaw range spans the whole circle (yaw then wraps: its end is its start)."""
+        return self.yaw_range_rad[1] - self.yaw_range_rad[0] >= 2 * math.pi - 1e-9
+
     def axes(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         xs = _axis(*self.x_range_m, self.xy_step_m, "x", "m")
         ys = _axis(*self.y_range_m, self.xy_step_m, "y", "m")
         ylo, yhi = self.yaw_range_rad
         yaws = _axis(ylo, yhi, self.yaw_step_rad, "yaw", "rad")
-        if yhi - ylo >= 2 * math.pi - 1e-9:
+        if self.full_circle:
             yaws = yaws[yaws < ylo + 2 * math.pi - 1e-9]
         return xs, ys, yaws
 
