@@ -23,6 +23,16 @@ def find_candidate(offsets: wp.array(dtype=wp.int32), n: int, i: int) -> int:
 
 
 @wp.func
+def box_pixel(pix_off: wp.array(dtype=wp.int32), box: wp.array(dtype=wp.vec4i), n_cand: int, i: int):
+    """Flat pixel i: its candidate c and image pixel (u, v); candidate c owns pixels
+    [pix_off[c], pix_off[c+1]) of its box box[c] = (x0, y0, w, h), row by row."""
+    c = find_candidate(pix_off, n_cand, i)
+    b = box[c]
+    local = i - pix_off[c]
+    return c, b[0] + local % b[2], b[1] + local // b[2]
+
+
+@wp.func
 def sample_texture(tex: wp.array2d(dtype=wp.vec3), uv: wp.vec2) -> wp.vec3:
     """Bilinear lookup, texture row 0 at v = 0, UVs wrapped (OBJ convention)."""
     h = tex.shape[0]
@@ -92,11 +102,7 @@ def render_boxes(
     out_mask: wp.array(dtype=wp.uint8),
 ):
     i = wp.tid()
-    c = find_candidate(pix_off, n_cand, i)
-    b = box[c]  # x0, y0, w, h in image pixels
-    local = i - pix_off[c]
-    u = b[0] + local % b[2]
-    v = b[1] + local // b[2]
+    c, u, v = box_pixel(pix_off, box, n_cand, i)
     q = wp.mesh_query_ray(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6)
     if q.result:
         out_rgb[i] = surface_color(indices, uvs, texture, colors, use_texture, q.face, q.u, q.v)

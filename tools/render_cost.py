@@ -26,31 +26,12 @@ from pathlib import Path
 
 import numpy as np
 import warp as wp
-from perch_warp.kernels.render import find_candidate, pixel_ray_m
+from perch_warp.kernels.render import box_pixel, pixel_ray_m
 
 from perch_warp.bench import add_frame_arguments, default_dataset, git_commit, load_workload
 from perch_warp.features import caffe_weights_path
 from perch_warp.render import MeshRenderer, camera_in_model, flat_offsets, project_boxes
 from perch_warp.table import model_to_camera
-
-
-@wp.func
-def box_ray(
-    pix_off: wp.array(dtype=wp.int32),
-    box: wp.array(dtype=wp.vec4i),
-    n_cand: int,
-    i: int,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-):
-    """Candidate c of flat pixel i and its ray's direction (model frame), as kernel #1 computes them."""
-    c = find_candidate(pix_off, n_cand, i)
-    b = box[c]
-    local = i - pix_off[c]
-    return c, pixel_ray_m(b[0] + local % b[2], b[1] + local // b[2], fx, fy, cx, cy, rot_c2m[c])
 
 
 @wp.kernel(enable_backward=False)
@@ -69,8 +50,8 @@ def closest_hit_only(
     out_t: wp.array(dtype=float),
 ):
     i = wp.tid()
-    c, d = box_ray(pix_off, box, n_cand, i, fx, fy, cx, cy, rot_c2m)
-    q = wp.mesh_query_ray(mesh, origin_m[c], d, max_t[i])
+    c, u, v = box_pixel(pix_off, box, n_cand, i)  # kernel #1's pixels and rays
+    q = wp.mesh_query_ray(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), max_t[i])
     out_t[i] = wp.where(q.result, q.t, -1.0)
 
 
@@ -89,7 +70,8 @@ def any_hit(
     out_mask: wp.array(dtype=wp.uint8),
 ):
     i = wp.tid()
-    c, d = box_ray(pix_off, box, n_cand, i, fx, fy, cx, cy, rot_c2m)
+    c, u, v = box_pixel(pix_off, box, n_cand, i)
+    d = pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c])
     out_mask[i] = wp.where(wp.mesh_query_ray_anyhit(mesh, origin_m[c], d, 1.0e6), wp.uint8(1), wp.uint8(0))
 
 
