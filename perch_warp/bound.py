@@ -14,7 +14,7 @@ import warp as wp
 
 from .camera import Camera
 from .kernels.bound import rarity_under_silhouette
-from .render import MeshRenderer, camera_in_model, flat_offsets
+from .render import MeshRenderer, flat_offsets
 from .score import top_alpha_mean_device
 
 # Scores are float32 cosines (which may exceed 1 by rounding) times rarity, averaged in float64:
@@ -39,7 +39,6 @@ def silhouette_points(
     gboxes = np.asarray(gboxes, dtype=np.int32)
     pt_off = flat_offsets(gboxes)
     n_pts = int(pt_off[-1])
-    R_c2m, origin_m = camera_in_model(R_m2c, t_m2c_m)
     with wp.ScopedDevice(renderer.device):
         out = wp.empty(n_pts, dtype=float)
         offsets = wp.array(pt_off, dtype=wp.int32)
@@ -48,12 +47,7 @@ def silhouette_points(
             dim=n_pts,
             inputs=[
                 renderer.wp_mesh.id,
-                camera.fx,
-                camera.fy,
-                camera.cx,
-                camera.cy,
-                wp.array(R_c2m, dtype=wp.mat33),
-                wp.array(origin_m, dtype=wp.vec3),
+                *renderer.ray_inputs(camera, R_m2c, t_m2c_m),  # the renderer's rays
                 wp.array(np.asarray(boxes, dtype=np.int32), dtype=wp.vec4i),
                 wp.array(gboxes, dtype=wp.vec4i),
                 offsets,

@@ -134,12 +134,26 @@ class MeshRenderer:
                 self.texture = wp.zeros((1, 1), dtype=wp.vec3)
                 self.colors = wp.array(mesh.vertex_colors.astype(np.float32), dtype=wp.vec3)
 
+    def ray_inputs(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> list:
+        """The kernel inputs that define the candidates' pixel rays (kernels/render.py: pixel_ray_m):
+        fx, fy, cx, cy (pixels), camera-to-model rotations and camera centres in the model frame
+        (metres), on this device. Every kernel that casts the candidates' pixel rays takes them in
+        this order, so all of them cast the same rays."""
+        R_c2m, origin_m = camera_in_model(R_m2c, t_m2c_m)
+        return [
+            camera.fx,
+            camera.fy,
+            camera.cx,
+            camera.cy,
+            wp.array(R_c2m, dtype=wp.mat33, device=self.device),
+            wp.array(origin_m, dtype=wp.vec3, device=self.device),
+        ]
+
     def render(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, boxes: np.ndarray) -> RenderedBatch:
         """Ray-cast each candidate's box (boxes (B, 4) with w, h > 0); returns device arrays."""
         boxes = np.asarray(boxes, dtype=np.int32)
         pix_off = flat_offsets(boxes)
         n_pix = int(pix_off[-1])
-        R_c2m, origin_m = camera_in_model(R_m2c, t_m2c_m)
         with wp.ScopedDevice(self.device):
             batch = RenderedBatch(
                 rgb=wp.empty(n_pix, dtype=wp.vec3),
@@ -158,12 +172,7 @@ class MeshRenderer:
                     self.texture,
                     self.colors,
                     self.use_texture,
-                    camera.fx,
-                    camera.fy,
-                    camera.cx,
-                    camera.cy,
-                    wp.array(R_c2m, dtype=wp.mat33),
-                    wp.array(origin_m, dtype=wp.vec3),
+                    *self.ray_inputs(camera, R_m2c, t_m2c_m),
                     batch.box,
                     batch.pix_off,
                     batch.n,

@@ -30,7 +30,7 @@ from perch_warp.kernels.render import box_pixel, pixel_ray_m
 
 from perch_warp.bench import add_frame_arguments, default_dataset, git_commit, load_workload
 from perch_warp.features import caffe_weights_path
-from perch_warp.render import MeshRenderer, camera_in_model, flat_offsets, project_boxes
+from perch_warp.render import MeshRenderer, flat_offsets, project_boxes
 from perch_warp.table import model_to_camera
 
 
@@ -119,16 +119,10 @@ def main(argv: list[str] | None = None) -> int:
     cam = w.camera
     pix_off = flat_offsets(boxes)
     n = int(pix_off[-1])
-    R_c2m, origin_m = camera_in_model(R, t)
     with wp.ScopedDevice(args.device):
         common = [
             renderer.wp_mesh.id,
-            cam.fx,
-            cam.fy,
-            cam.cx,
-            cam.cy,
-            wp.array(R_c2m, dtype=wp.mat33),
-            wp.array(origin_m, dtype=wp.vec3),
+            *renderer.ray_inputs(cam, R, t),
             wp.array(boxes, dtype=wp.vec4i),
             wp.array(pix_off, dtype=wp.int32),
             len(boxes),
