@@ -346,7 +346,7 @@ def search_summary(result) -> str:
     chosen = f" (auto on {result.device})" if info.get("search_option") == "auto" else ""
     line = f"search: {info['search']}{chosen}, scored {info['evaluated']:,} of {result.n_candidates:,} candidates"
     if info["search"] == "pruned":
-        k = len(result.top_k)
+        k = info["k"]  # not len(top_k): the refined pose may replace a runner-up
         if info["evaluated"] < info["bounded"]:
             line += f" ({info['bounded']:,} bounded by their silhouettes; the rest cannot reach the top {k})"
         else:

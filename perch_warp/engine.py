@@ -473,7 +473,13 @@ class Engine:
             return _kth_largest(scores[scored], k)
 
         scored, rounds, _ = self._best_first(photo, camera, R, tr, boxes, gboxes, live, scores, timings, kth_best, bar)
-        info = {"bounded": len(live), "scored": len(scored), "rounds": rounds, "bound_rays": self._n_bound_rays}
+        info = {
+            "bounded": len(live),
+            "scored": len(scored),
+            "rounds": rounds,
+            "bound_rays": self._n_bound_rays,
+            "k": k,  # the rank whose score a bound had to reach
+        }
         return x, y, yaw, scores, info
 
     def _best_first(self, photo, camera, R, tr, boxes, gboxes, idx, scores, timings, kth_best, bar=None):
