@@ -508,6 +508,8 @@ def format_report(r: dict) -> str:
         f"workload      {r['workload']} (table: {r['table_source']})",
         f"search        {r['settings']['search']}, image scale {r['settings']['image_scale']:g} "
         f"({r['search_image'][0]}x{r['search_image'][1]} px)",
+        f"renderer      {r['settings'].get('renderer', 'bvh')}"
+        + (" (back faces skipped: closed mesh)" if r["settings"].get("cull_back_faces") else ""),
         f"space         {s['space']}",
         f"setup         {r['setup_s']:.2f} s (engine: mesh upload, kernel build; not timed below)",
         f"warm-up run   {s['warmup']['wall_s']:.3f} s (excluded from the figures below)"
@@ -608,6 +610,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     m.add_argument("--device", default=None, help="Warp device: cpu | cuda:0 (default: a GPU if Warp sees one)")
     m.add_argument("--weights", default="caffe", help="conv1 weights: caffe | torchvision | auto | FILE.npz")
     m.add_argument("--search", default="exhaustive", choices=["exhaustive", "pruned", "coarse-to-fine"])
+    m.add_argument(
+        "--renderer",
+        default="auto",
+        choices=["auto", "bvh", "raster"],
+        help="kernel #1's form: bvh or raster (same images); auto: raster on the CPU, bvh on a GPU",
+    )
     m.add_argument("--image-scale", type=float, default=1.0, help="search on the photo resized by this factor")
     m.add_argument("--cpu-threads", type=int, default=None, help="CPU device: batches at once (default: one per core)")
     m.add_argument(
@@ -651,7 +659,11 @@ def run(args: argparse.Namespace) -> int:
         raise PerchError(f"--min-time must be a non-negative number of seconds, got {args.min_time}")
     # validates before any work
     config = EngineConfig(
-        search=args.search, image_scale=args.image_scale, cpu_threads=args.cpu_threads, refine=args.refine
+        search=args.search,
+        image_scale=args.image_scale,
+        cpu_threads=args.cpu_threads,
+        refine=args.refine,
+        renderer=args.renderer,
     )
     w = load_workload(dataset, args.scene, args.image, args.obj, args.clip, args.xy_step, args.yaw_step, args.split)
     weights = load_feature_weights(args.weights)
@@ -686,6 +698,9 @@ def run(args: argparse.Namespace) -> int:
             "yaw_step_rad": args.yaw_step,
             "search": args.search,
             "refine": args.refine,
+            "renderer": engine.renderer.method,
+            "renderer_option": args.renderer,
+            "cull_back_faces": engine.renderer.cull_back_faces,
             "image_scale": args.image_scale,
             "cpu_threads": threads,
             "stride_px": config.stride,

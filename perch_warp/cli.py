@@ -82,6 +82,13 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     )
     g.add_argument("--device", default=None, help="Warp device: cpu | cuda:0 (default: a GPU if Warp sees one)")
     g.add_argument(
+        "--renderer",
+        default="auto",
+        choices=["auto", "bvh", "raster"],
+        help="how rays find the mesh: bvh (Warp's mesh query per ray) or raster (each triangle tests the rays "
+        "it covers; the same images); auto: raster on the CPU, bvh on a GPU (default)",
+    )
+    g.add_argument(
         "--batch-pixels", type=int, default=None, help="rendered pixels per batch (default: sized to the device)"
     )
     g.add_argument(
@@ -122,6 +129,7 @@ def engine_config_from_args(args: argparse.Namespace):
         relu=args.relu,
         batch_pixels=args.batch_pixels,
         search=args.search,
+        renderer=args.renderer,
         coarse_xy_m=args.coarse_xy,
         coarse_yaw_rad=math.radians(args.coarse_yaw),
         beam=args.beam,
@@ -169,7 +177,18 @@ def build_engine(args: argparse.Namespace, mesh, quiet: bool = False):
             + ("" if args.device else " (chosen automatically; --device to override)")
             + (f", {threads} CPU threads (--cpu-threads to change)" if threads > 1 else "")
         )
+        log(renderer_line(engine))
     return engine
+
+
+def renderer_line(engine) -> str:
+    """Which renderer runs and why (the option, the device, whether back faces are skipped)."""
+    r = engine.renderer
+    why = f" (auto on {engine.device})" if engine.config.renderer == "auto" else ""
+    if r.method == "raster":
+        faces = "closed mesh: back faces skipped" if r.cull_back_faces else "open mesh: every face tested"
+        return f"renderer: raster{why}, {faces} (--renderer bvh for Warp's per-ray mesh query)"
+    return f"renderer: bvh{why} (--renderer raster tests rays per triangle, faster on a CPU)"
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:

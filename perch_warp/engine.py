@@ -27,7 +27,7 @@ from .image import check_rgb
 from .mesh import ObjectMesh
 from .rarity import rarity as rarity_fn
 from .refine import cell_space
-from .render import MIN_DEPTH_M, BoxProjector, MeshRenderer
+from .render import MIN_DEPTH_M, RENDERERS, BoxProjector, MeshRenderer, resolve_renderer
 from .result import Candidate, Result
 from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean_device
 from .search_space import SearchSpace
@@ -69,6 +69,9 @@ class EngineConfig:
     refine_xy_m: float = 0.002
     refine_yaw_rad: float = math.radians(1.0)
     refine_cells: int = 1  # grid steps either side of the best grid pose that the refinement searches
+    # How kernel #1 finds each ray's surface (perch_warp.render): "bvh", "raster" (the same images),
+    # or "auto": raster on the CPU (measured faster there), bvh on a GPU (the raster form is not measured there).
+    renderer: str = "auto"
 
     def __post_init__(self) -> None:
         if not (0.0 < self.alpha <= 1.0) or not math.isfinite(self.alpha):
@@ -92,6 +95,8 @@ class EngineConfig:
             )
         if self.refine_cells < 1:
             raise PerchError(f"refine_cells (--refine-cells) must be at least 1, got {self.refine_cells}")
+        if self.renderer not in RENDERERS:
+            raise PerchError(f"renderer (--renderer) must be one of {', '.join(RENDERERS)}, got {self.renderer!r}")
         if self.cpu_threads is not None and self.cpu_threads < 1:
             raise PerchError(
                 f"cpu_threads (--cpu-threads) must be at least 1, or None for one per core; got {self.cpu_threads}"
@@ -144,10 +149,11 @@ class Engine:
         self.mesh = mesh
         self.weights = weights
         t0 = time.perf_counter()
-        self.renderer = MeshRenderer(mesh, self.device)
+        self.renderer = MeshRenderer(mesh, self.device, resolve_renderer(self.config.renderer, self.device))
         self.scorer = FeatureScorer(weights, self.device, self.config.stride, self.config.relu)
         self.scorer.warm_up()
-        for module in ("render", "boxes", "reduce", "bound"):  # build now: compile time is not a search stage's
+        # Build now: compile time is not a search stage's.
+        for module in ("render", "raster", "boxes", "reduce", "bound"):
             wp.load_module(f"perch_warp.kernels.{module}", device=self.device)
         self.hull_m = mesh.hull_points_m()
         self.boxes = BoxProjector(self.hull_m, self.device)
@@ -229,6 +235,9 @@ class Engine:
                 "seed": cfg.seed,
                 "search": self.search,
                 "search_option": cfg.search,  # as asked: "auto" or the search itself
+                "renderer": self.renderer.method,
+                "renderer_option": cfg.renderer,  # as asked: "auto" or the renderer itself
+                "cull_back_faces": self.renderer.cull_back_faces,  # raster on a closed mesh only
                 "image_scale": cfg.image_scale,
                 "search_space": space.describe(),
                 "evaluated": evaluated,  # candidates scored (rendered and compared)

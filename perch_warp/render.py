@@ -1,7 +1,10 @@
 """Rendering candidates: project their boxes, pack them, and ray-cast with kernel #1.
 
 No lighting, as in the thesis: a pixel's colour is the texture (or vertex colour)
-at the first surface its ray meets.
+at the first surface its ray meets. Two ways to find that surface, with the same rays and
+the same ray-triangle test: "bvh" queries Warp's mesh BVH per ray (kernels/render.py),
+"raster" lets each triangle test the rays its projection covers (kernels/raster.py),
+which is faster on a CPU (docs/performance.md, "Raster form of kernel #1").
 """
 
 from __future__ import annotations
@@ -12,12 +15,41 @@ import numpy as np
 import warp as wp
 
 from .camera import Camera
+from .errors import PerchError
 from .kernels import boxes as box_kernels
+from .kernels import raster as raster_kernels
 from .kernels.render import render_boxes
 from .mesh import ObjectMesh
 
 # Candidates closer than this to the camera plane cannot be rendered sensibly.
 MIN_DEPTH_M = 0.02
+# "auto": raster on the CPU (measured faster there), bvh on a GPU (where the raster form is not measured).
+RENDERERS = ("auto", "bvh", "raster")
+# The raster form projects every vertex for every candidate: at most this many (candidate, vertex)
+# pairs at once (12 bytes each), so memory stays bounded whatever the batch.
+VERTEX_SLOTS = 1 << 22
+
+
+def resolve_renderer(renderer: str, device: str) -> str:
+    """What a renderer option means on `device`: "auto" is raster on the CPU, bvh on a GPU."""
+    if renderer not in RENDERERS:
+        raise PerchError(f"renderer must be one of {', '.join(RENDERERS)}, got {renderer!r}")
+    if renderer != "auto":
+        return renderer
+    return "raster" if wp.get_device(device).is_cpu else "bvh"
+
+
+def is_closed_surface(vertices_m: np.ndarray, faces: np.ndarray) -> bool:
+    """True when the faces, with vertices at bit-identical float32 positions merged (texture seams
+    split vertices, not the surface), close a volume with outward winding: every edge shared by
+    exactly two faces in opposite directions, positive signed volume. Then, seen from outside,
+    the nearest hit of any ray lies on a face turned towards it, and back faces can be skipped."""
+    import trimesh
+
+    v = np.asarray(vertices_m, dtype=np.float32)
+    uniq, inverse = np.unique(v, axis=0, return_inverse=True)
+    tm = trimesh.Trimesh(uniq.astype(np.float64), inverse.reshape(-1)[np.asarray(faces)], process=False)
+    return bool(tm.is_watertight and tm.is_winding_consistent and tm.volume > 0)
 
 
 def project_boxes(camera: Camera, hull_m: np.ndarray, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> np.ndarray:
@@ -114,11 +146,17 @@ def camera_in_model(R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray,
 
 
 class MeshRenderer:
-    """A mesh and its appearance uploaded once to a Warp device (model frame, metres)."""
+    """A mesh and its appearance uploaded once to a Warp device (model frame, metres), rendered
+    by `method`: "bvh" (kernels/render.py) or "raster" (kernels/raster.py), the same images."""
 
-    def __init__(self, mesh: ObjectMesh, device: str):
+    def __init__(self, mesh: ObjectMesh, device: str, method: str = "bvh"):
+        if method not in ("bvh", "raster"):
+            raise PerchError(f"renderer method must be bvh or raster, got {method!r}")
         self.device = device
         self.mesh = mesh
+        self.method = method
+        # Only the raster form can skip faces; it does when that cannot change a pixel.
+        self.cull_back_faces = method == "raster" and is_closed_surface(mesh.vertices_m, mesh.faces)
         with wp.ScopedDevice(device):
             self.points = wp.array(mesh.vertices_m.astype(np.float32), dtype=wp.vec3)
             self.indices = wp.array(mesh.faces.reshape(-1).astype(np.int32), dtype=wp.int32)
@@ -154,6 +192,7 @@ class MeshRenderer:
         boxes = np.asarray(boxes, dtype=np.int32)
         pix_off = flat_offsets(boxes)
         n_pix = int(pix_off[-1])
+        rays = self.ray_inputs(camera, R_m2c, t_m2c_m)
         with wp.ScopedDevice(self.device):
             batch = RenderedBatch(
                 rgb=wp.empty(n_pix, dtype=wp.vec3),
@@ -162,21 +201,47 @@ class MeshRenderer:
                 pix_off=wp.array(pix_off, dtype=wp.int32),
                 n=len(boxes),
             )
+            appearance = [self.indices, self.uvs, self.texture, self.colors, self.use_texture]
+            if self.method == "bvh":
+                wp.launch(
+                    render_boxes,
+                    dim=n_pix,
+                    inputs=[self.wp_mesh.id, *appearance, *rays, batch.box, batch.pix_off, batch.n],
+                    outputs=[batch.rgb, batch.mask],
+                )
+                return batch
+            key = wp.full(n_pix, raster_kernels.NO_HIT, dtype=wp.int64)
+            n_points = len(self.points)
+            chunk = max(1, VERTEX_SLOTS // n_points)
+            uvz = wp.empty((min(chunk, batch.n), n_points), dtype=wp.vec3)
+            for c0 in range(0, batch.n, chunk):
+                m = min(chunk, batch.n - c0)
+                wp.launch(
+                    raster_kernels.project_points,
+                    dim=(m, n_points),
+                    inputs=[self.points, *rays, c0, MIN_DEPTH_M],
+                    outputs=[uvz],
+                )
+                wp.launch(
+                    raster_kernels.splat_faces,
+                    dim=(m, len(self.indices) // 3),
+                    inputs=[
+                        self.points,
+                        self.indices,
+                        uvz,
+                        *rays,
+                        batch.box,
+                        batch.pix_off,
+                        c0,
+                        MIN_DEPTH_M,
+                        int(self.cull_back_faces),
+                    ],
+                    outputs=[key],
+                )
             wp.launch(
-                render_boxes,
+                raster_kernels.shade_keys,
                 dim=n_pix,
-                inputs=[
-                    self.wp_mesh.id,
-                    self.indices,
-                    self.uvs,
-                    self.texture,
-                    self.colors,
-                    self.use_texture,
-                    *self.ray_inputs(camera, R_m2c, t_m2c_m),
-                    batch.box,
-                    batch.pix_off,
-                    batch.n,
-                ],
+                inputs=[self.points, *appearance, *rays, batch.box, batch.pix_off, batch.n, key],
                 outputs=[batch.rgb, batch.mask],
             )
         return batch

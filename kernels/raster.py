@@ -1,0 +1,203 @@
+"""Kernel #1, raster form: kernel #1's pixel rays, tested per triangle instead of through the BVH.
+
+A BVH query walks the tree for every ray, and on a CPU that walk is the render's cost
+(docs/performance.md, "Where a CPU render's time goes"). Here each triangle of each
+candidate tests only the pixel rays its projection can cover, with the ray-triangle test
+Warp's mesh query runs (`wp::intersect_ray_tri_woop`, called natively so the arithmetic
+is the same), and keeps each pixel's nearest hit as a 64-bit key (distance bits, then
+face) that an atomic min resolves on any device. A shading pass then colours each pixel
+from its face as kernel #1 does. Same layout as kernel #1: candidates' boxes packed flat
+(pix_off), rays in the model frame (metres), camera frame for the projections.
+"""
+
+import warp as wp
+
+from .render import box_pixel, pixel_ray_m, surface_color
+
+# Key of a pixel no triangle covers (above any hit's key).
+NO_HIT = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
+# Slack (pixels) of the screen-space tests, which only skip rays that cannot hit: projections are
+# computed in the camera frame and the ray test in the model frame, and the two round differently
+# (by about 1e-4 px here).
+SLACK_PX = wp.constant(0.05)
+# The edge pre-test needs edges that are not too short (absolute, and against the longest edge):
+# a point's distance to a short edge's line magnifies the rounding of its corners.
+MIN_EDGE_PX = wp.constant(0.25)
+MAX_EDGE_RATIO = wp.constant(64.0)
+# Faces whose projection has at least this area (pixels², y down) facing away are skipped when the
+# mesh is closed: from outside a closed surface the nearest hit is always on a face turned towards the ray.
+BACK_FACE_AREA_PX2 = wp.constant(1.0e-3)
+
+
+@wp.func_native(
+    """
+float t, u, v, s;
+if (wp::intersect_ray_tri_woop(p, d, a, b, c, t, u, v, s, nullptr) && t >= 0.0f)
+    return wp::vec4(1.0f, t + 0.0f, u, v);  // + 0.0f: no -0.0, whose bits would sort first
+return wp::vec4(0.0f, 0.0f, 0.0f, 0.0f);
+"""
+)
+def ray_triangle(p: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> wp.vec4:
+    """(hit, t, u, v): Warp's mesh-query test of ray p + t d against triangle (a, b, c), t >= 0."""
+    ...
+
+
+@wp.func_native(
+    """
+wp::int32 r;
+memcpy(&r, &x, sizeof(r));
+return r;
+"""
+)
+def float_bits(x: float) -> wp.int32:
+    """The IEEE-754 bits of x: for x >= 0 they order as x does."""
+    ...
+
+
+@wp.func
+def hit_key(t: float, face: int) -> wp.int64:
+    """Nearest first, then the lower face index: one atomic min keeps a pixel's hit."""
+    return (wp.int64(float_bits(t)) << wp.int64(32)) | wp.int64(face)
+
+
+@wp.func
+def edge_line(p: wp.vec3, q: wp.vec3):
+    """Line through projected corners p, q (pixels): unit normal n and offset w, so that n . x + w is
+    the signed distance of x from it; and the edge's length."""
+    e = wp.vec2(q[0] - p[0], q[1] - p[1])
+    length = wp.length(e)
+    n = wp.vec2(-e[1], e[0]) / wp.max(length, 1.0e-20)
+    return n, -(n[0] * p[0] + n[1] * p[1]), length
+
+
+@wp.kernel(enable_backward=False)
+def project_points(
+    points: wp.array(dtype=wp.vec3),
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    rot_c2m: wp.array(dtype=wp.mat33),
+    origin_m: wp.array(dtype=wp.vec3),
+    c0: int,
+    min_depth_m: float,
+    out_uvz: wp.array2d(dtype=wp.vec3),
+):
+    """Thread (j, k): vertex k of candidate c0 + j in pixels (u, v) and its depth z (camera frame, m)."""
+    j, k = wp.tid()
+    c = c0 + j
+    p = wp.transpose(rot_c2m[c]) * (points[k] - origin_m[c])
+    z = wp.max(p[2], min_depth_m)
+    out_uvz[j, k] = wp.vec3(fx * p[0] / z + cx, fy * p[1] / z + cy, p[2])
+
+
+@wp.kernel(enable_backward=False)
+def splat_faces(
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    uvz: wp.array2d(dtype=wp.vec3),
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    rot_c2m: wp.array(dtype=wp.mat33),
+    origin_m: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4i),
+    pix_off: wp.array(dtype=wp.int32),
+    c0: int,
+    min_depth_m: float,
+    cull_back: int,
+    out_key: wp.array(dtype=wp.int64),
+):
+    """Thread (j, f): cast the pixel rays of candidate c0 + j's box that face f's projection may cover."""
+    j, f = wp.tid()
+    c = c0 + j
+    i0 = indices[f * 3 + 0]
+    i1 = indices[f * 3 + 1]
+    i2 = indices[f * 3 + 2]
+    q0 = uvz[j, i0]
+    q1 = uvz[j, i1]
+    q2 = uvz[j, i2]
+    b = box[c]
+    u0 = b[0]
+    v0 = b[1]
+    u1 = b[0] + b[2] - 1
+    v1 = b[1] + b[3] - 1
+    # A corner too near the camera projects nowhere sensible: then every ray of the box is tested.
+    projected = wp.min(wp.min(q0[2], q1[2]), q2[2]) >= min_depth_m
+    if projected:
+        if cull_back != 0:
+            area = (q1[0] - q0[0]) * (q2[1] - q0[1]) - (q1[1] - q0[1]) * (q2[0] - q0[0])
+            if area > BACK_FACE_AREA_PX2:
+                return
+        u0 = wp.max(u0, int(wp.ceil(wp.min(wp.min(q0[0], q1[0]), q2[0]) - SLACK_PX)))
+        u1 = wp.min(u1, int(wp.floor(wp.max(wp.max(q0[0], q1[0]), q2[0]) + SLACK_PX)))
+        v0 = wp.max(v0, int(wp.ceil(wp.min(wp.min(q0[1], q1[1]), q2[1]) - SLACK_PX)))
+        v1 = wp.min(v1, int(wp.floor(wp.max(wp.max(q0[1], q1[1]), q2[1]) + SLACK_PX)))
+    # Edge k's signed distance (pixels) of pixel (u, v) is n_k . (u, v) + w_k; a pixel clearly
+    # outside (beyond the slack on the wrong side of an edge, for either winding) casts no ray.
+    n0, w0, l0 = edge_line(q0, q1)
+    n1, w1, l1 = edge_line(q1, q2)
+    n2, w2, l2 = edge_line(q2, q0)
+    shortest = wp.min(wp.min(l0, l1), l2)
+    edge_test = projected and shortest >= MIN_EDGE_PX and shortest * MAX_EDGE_RATIO >= wp.max(wp.max(l0, l1), l2)
+    a = points[i0]
+    bb = points[i1]
+    cc = points[i2]
+    o = origin_m[c]
+    R = rot_c2m[c]
+    for v in range(v0, v1 + 1):
+        row = pix_off[c] + (v - b[1]) * b[2] - b[0]
+        pv = float(v)
+        for u in range(u0, u1 + 1):
+            if edge_test:
+                pu = float(u)
+                d0 = n0[0] * pu + n0[1] * pv + w0
+                d1 = n1[0] * pu + n1[1] * pv + w1
+                d2 = n2[0] * pu + n2[1] * pv + w2
+                if wp.min(wp.min(d0, d1), d2) < -SLACK_PX and wp.max(wp.max(d0, d1), d2) > SLACK_PX:
+                    continue
+            h = ray_triangle(o, pixel_ray_m(u, v, fx, fy, cx, cy, R), a, bb, cc)
+            if h[0] > 0.0:
+                wp.atomic_min(out_key, row + u, hit_key(h[1], f))
+
+
+@wp.kernel(enable_backward=False)
+def shade_keys(
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    uvs: wp.array(dtype=wp.vec2),
+    texture: wp.array2d(dtype=wp.vec3),
+    colors: wp.array(dtype=wp.vec3),
+    use_texture: int,
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    rot_c2m: wp.array(dtype=wp.mat33),
+    origin_m: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4i),
+    pix_off: wp.array(dtype=wp.int32),
+    n_cand: int,
+    key: wp.array(dtype=wp.int64),
+    out_rgb: wp.array(dtype=wp.vec3),
+    out_mask: wp.array(dtype=wp.uint8),
+):
+    """Pixel i: colour and mask from its nearest face, as kernel #1 writes them."""
+    i = wp.tid()
+    k = key[i]
+    if k == NO_HIT:
+        out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)
+        out_mask[i] = wp.uint8(0)
+        return
+    f = int(k & wp.int64(0x7FFFFFFF))
+    c, u, v = box_pixel(pix_off, box, n_cand, i)
+    h = ray_triangle(
+        origin_m[c],
+        pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]),
+        points[indices[f * 3 + 0]],
+        points[indices[f * 3 + 1]],
+        points[indices[f * 3 + 2]],
+    )
+    out_rgb[i] = surface_color(indices, uvs, texture, colors, use_texture, f, h[2], h[3])
+    out_mask[i] = wp.uint8(1)
