@@ -56,7 +56,8 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     assert "pose: x =" in stdout and "search: pruned (auto on cpu), scored " in stdout
     assert "refined below the grid: the best pose's cell at 2 mm / 3°" in stdout and res["refine"]["evaluated"] > 0
 
-    # The exhaustive search, on two CPU threads: the same poses and scores, every candidate scored.
+    # The exhaustive search, on two CPU threads, rendered by the BVH form of kernel #1 (the first run
+    # used the raster form, auto's choice on the CPU): the same poses and scores, every candidate scored.
     out2 = tmp_path / "r2.json"
     assert (
         main(
@@ -73,11 +74,14 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
                 "2",
                 "--refine-yaw",
                 "3",
+                "--renderer",
+                "bvh",
             )
         )
         == 0
     )
     res2 = json.loads(out2.read_text())
+    assert (res["renderer"], res["renderer_option"], res2["renderer"]) == ("raster", "auto", "bvh")
     keys = ("x_m", "y_m", "yaw_rad", "score")  # (the 4x4 transforms agree to rounding, not bit for bit)
     assert [[c[k] for k in keys] for c in res2["top_k"]] == [[c[k] for k in keys] for c in res["top_k"]]
     assert res["bounded"] == res2["n_candidates"] == res2["evaluated"]

@@ -1,4 +1,5 @@
-"""Kernel #1 against independent geometry: projections of mesh vertices and known face colours."""
+"""Kernel #1 against independent geometry: projections of mesh vertices and known face colours,
+in both its forms (bvh: Warp's mesh query per ray; raster: per triangle, kernels/raster.py)."""
 
 import math
 
@@ -39,9 +40,13 @@ def box():
     return textured_box((0.1, 0.06, 0.04), _tile_texture())
 
 
-def test_mask_matches_projected_vertex_hull(box):
+METHODS = pytest.mark.parametrize("method", ["bvh", "raster"])
+
+
+@METHODS
+def test_mask_matches_projected_vertex_hull(box, method):
     R, t = _pose(box)
-    rgb, mask = MeshRenderer(box, DEVICE).render_image(CAM, R, t)
+    rgb, mask = MeshRenderer(box, DEVICE, method).render_image(CAM, R, t)
     uv = CAM.project(box.vertices_m @ R.T + t)
     hull = uv[ConvexHull(uv).vertices]
     vv, uu = np.mgrid[0 : CAM.height, 0 : CAM.width]
@@ -54,9 +59,10 @@ def test_mask_matches_projected_vertex_hull(box):
     assert not (mask & ~(inside | grown)).any() and not (shrunk & inside & ~mask).any()
 
 
-def test_face_colours_come_from_their_texture_tiles(box):
+@METHODS
+def test_face_colours_come_from_their_texture_tiles(box, method):
     R, t = _pose(box)
-    rgb, mask = MeshRenderer(box, DEVICE).render_image(CAM, R, t)
+    rgb, mask = MeshRenderer(box, DEVICE, method).render_image(CAM, R, t)
     checked = 0
     for k in range(6):
         quad = box.vertices_m[4 * k : 4 * k + 4] @ R.T + t
@@ -71,17 +77,19 @@ def test_face_colours_come_from_their_texture_tiles(box):
     assert checked >= 2
 
 
-def test_vertex_colours_are_interpolated():
+@METHODS
+def test_vertex_colours_are_interpolated(method):
     cyl = striped_cylinder(0.03, 0.08, np.random.default_rng(0))
     cyl = type(cyl)(cyl.vertices_m, cyl.faces, None, None, np.tile([[0.2, 0.5, 0.7]], (len(cyl.vertices_m), 1)))
     R, t = _pose(cyl)
-    rgb, mask = MeshRenderer(cyl, DEVICE).render_image(CAM, R, t)
+    rgb, mask = MeshRenderer(cyl, DEVICE, method).render_image(CAM, R, t)
     assert mask.sum() > 200
     assert np.allclose(rgb[mask], [0.2, 0.5, 0.7], atol=1e-5)
 
 
-def test_batched_boxes_equal_single_renders(box):
-    r = MeshRenderer(box, DEVICE)
+@METHODS
+def test_batched_boxes_equal_single_renders(box, method):
+    r = MeshRenderer(box, DEVICE, method)
     rp = RestingPose.upright(box.vertices_m)
     R, t = model_to_camera(
         TABLE, rp, np.array([0.0, 0.03, -0.05]), np.array([0.0, 0.02, 0.01]), np.radians([0, 50, 200])
