@@ -5,7 +5,7 @@ A BVH query walks the tree for every ray, and on a CPU that walk is the render's
 candidate tests only the pixel rays its projection can cover, with the ray-triangle test
 Warp's mesh query runs (`wp::intersect_ray_tri_woop`, called natively so the arithmetic
 is the same), and keeps each pixel's nearest hit as a 64-bit key (distance bits, then
-face) that an atomic min resolves on any device. A shading pass then colours each pixel
+face) that an atomic compare-and-swap loop resolves on any device. A shading pass then colours each pixel
 from its face as kernel #1 does. Same layout as kernel #1: candidates' boxes packed flat
 (pix_off), rays in the model frame (metres), camera frame for the projections.
 """
@@ -44,9 +44,9 @@ def ray_triangle(p: wp.vec3, d: wp.vec3, a: wp.vec3, b: wp.vec3, c: wp.vec3) -> 
 
 @wp.func_native(
     """
-wp::int32 r;
-memcpy(&r, &x, sizeof(r));
-return r;
+union { float f; wp::int32 i; } bits;
+bits.f = x;
+return bits.i;
 """
 )
 def float_bits(x: float) -> wp.int32:
@@ -56,8 +56,20 @@ def float_bits(x: float) -> wp.int32:
 
 @wp.func
 def hit_key(t: float, face: int) -> wp.int64:
-    """Nearest first, then the lower face index: one atomic min keeps a pixel's hit."""
+    """Nearest first, then the lower face index: the minimum key is the hit a pixel keeps."""
     return (wp.int64(float_bits(t)) << wp.int64(32)) | wp.int64(face)
+
+
+@wp.func
+def keep_nearest(keys: wp.array(dtype=wp.int64), i: int, key: wp.int64):
+    """keys[i] = min(keys[i], key), atomically: a compare-and-swap loop, since Warp's CUDA atomic
+    min takes 32-bit integers only."""
+    old = keys[i]
+    while key < old:
+        seen = wp.atomic_cas(keys, i, old, key)
+        if seen == old:
+            break
+        old = seen
 
 
 @wp.func
@@ -159,7 +171,7 @@ def splat_faces(
                     continue
             h = ray_triangle(o, pixel_ray_m(u, v, fx, fy, cx, cy, R), a, bb, cc)
             if h[0] > 0.0:
-                wp.atomic_min(out_key, row + u, hit_key(h[1], f))
+                keep_nearest(out_key, row + u, hit_key(h[1], f))
 
 
 @wp.kernel(enable_backward=False)
