@@ -5,14 +5,14 @@ A BVH query walks the tree for every ray, and on a CPU that walk is the render's
 candidate tests only the pixel rays its projection can cover, with the ray-triangle test
 Warp's mesh query runs (`wp::intersect_ray_tri_woop`, called natively so the arithmetic
 is the same), and keeps each pixel's nearest hit as a 64-bit key (distance bits, then
-face) that an atomic compare-and-swap loop resolves on any device. A shading pass then colours each pixel
-from its face as kernel #1 does. Same layout as kernel #1: candidates' boxes packed flat
+face) that an atomic compare-and-swap loop resolves on any device. Two shading passes then
+colour each pixel from its face as kernel #1 does. Same layout as kernel #1: candidates' boxes packed flat
 (pix_off), rays in the model frame (metres), camera frame for the projections.
 """
 
 import warp as wp
 
-from .render import box_pixel, pixel_ray_m, surface_color
+from .render import box_pixel, pixel_ray_m, sample_texture, surface_uv, vertex_color
 
 # Key of a pixel no triangle covers (above any hit's key).
 NO_HIT = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
@@ -175,11 +175,10 @@ def splat_faces(
 
 
 @wp.kernel(enable_backward=False)
-def shade_keys(
+def locate_hits(
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     uvs: wp.array(dtype=wp.vec2),
-    texture: wp.array2d(dtype=wp.vec3),
     colors: wp.array(dtype=wp.vec3),
     use_texture: int,
     fx: float,
@@ -192,14 +191,16 @@ def shade_keys(
     pix_off: wp.array(dtype=wp.int32),
     n_cand: int,
     key: wp.array(dtype=wp.int64),
+    out_uv: wp.array(dtype=wp.vec2),
     out_rgb: wp.array(dtype=wp.vec3),
     out_mask: wp.array(dtype=wp.uint8),
 ):
-    """Pixel i: colour and mask from its nearest face, as kernel #1 writes them."""
+    """Pixel i: its nearest face's hit again (the same test, so the same barycentrics as in the
+    search), and there the texture coordinates, or the vertex colour of an untextured mesh."""
     i = wp.tid()
     k = key[i]
+    out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)
     if k == NO_HIT:
-        out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)
         out_mask[i] = wp.uint8(0)
         return
     f = int(k & wp.int64(0x7FFFFFFF))
@@ -211,5 +212,22 @@ def shade_keys(
         points[indices[f * 3 + 1]],
         points[indices[f * 3 + 2]],
     )
-    out_rgb[i] = surface_color(indices, uvs, texture, colors, use_texture, f, h[2], h[3])
     out_mask[i] = wp.uint8(1)
+    if use_texture != 0:
+        out_uv[i] = surface_uv(indices, uvs, f, h[2], h[3])
+    else:
+        out_rgb[i] = vertex_color(indices, colors, f, h[2], h[3])
+
+
+@wp.kernel(enable_backward=False)
+def sample_hits(
+    texture: wp.array2d(dtype=wp.vec3),
+    uv: wp.array(dtype=wp.vec2),
+    mask: wp.array(dtype=wp.uint8),
+    out_rgb: wp.array(dtype=wp.vec3),
+):
+    """Pixel i: the texture at its coordinates. A pass of its own because texture reads miss the
+    cache: with the addresses known up front, a CPU overlaps the misses of many pixels."""
+    i = wp.tid()
+    if mask[i] != wp.uint8(0):
+        out_rgb[i] = sample_texture(texture, uv[i])

@@ -53,6 +53,21 @@ def sample_texture(tex: wp.array2d(dtype=wp.vec3), uv: wp.vec2) -> wp.vec3:
 
 
 @wp.func
+def surface_uv(indices: wp.array(dtype=wp.int32), uvs: wp.array(dtype=wp.vec2), face: int, bu: float, bv: float):
+    """Texture coordinates at barycentric (bu, bv) of `face` (Warp's barycentrics weight the
+    face's corners as (u, v, 1 - u - v))."""
+    w2 = 1.0 - bu - bv
+    return uvs[indices[face * 3 + 0]] * bu + uvs[indices[face * 3 + 1]] * bv + uvs[indices[face * 3 + 2]] * w2
+
+
+@wp.func
+def vertex_color(indices: wp.array(dtype=wp.int32), colors: wp.array(dtype=wp.vec3), face: int, bu: float, bv: float):
+    """Vertex colour interpolated at barycentric (bu, bv) of `face`."""
+    w2 = 1.0 - bu - bv
+    return colors[indices[face * 3 + 0]] * bu + colors[indices[face * 3 + 1]] * bv + colors[indices[face * 3 + 2]] * w2
+
+
+@wp.func
 def surface_color(
     indices: wp.array(dtype=wp.int32),
     uvs: wp.array(dtype=wp.vec2),
@@ -64,14 +79,9 @@ def surface_color(
     bv: float,
 ) -> wp.vec3:
     """Unlit colour at barycentric (bu, bv) of `face`: texture lookup or interpolated vertex colour."""
-    i0 = indices[face * 3 + 0]
-    i1 = indices[face * 3 + 1]
-    i2 = indices[face * 3 + 2]
-    # Warp's barycentrics weight the face's corners as (u, v, 1 - u - v).
-    w2 = 1.0 - bu - bv
     if use_texture != 0:
-        return sample_texture(texture, uvs[i0] * bu + uvs[i1] * bv + uvs[i2] * w2)
-    return colors[i0] * bu + colors[i1] * bv + colors[i2] * w2
+        return sample_texture(texture, surface_uv(indices, uvs, face, bu, bv))
+    return vertex_color(indices, colors, face, bu, bv)
 
 
 @wp.func

@@ -238,12 +238,18 @@ class MeshRenderer:
                     ],
                     outputs=[key],
                 )
+            uv = wp.empty(n_pix if self.use_texture else 1, dtype=wp.vec2)
             wp.launch(
-                raster_kernels.shade_keys,
+                raster_kernels.locate_hits,
                 dim=n_pix,
-                inputs=[self.points, *appearance, *rays, batch.box, batch.pix_off, batch.n, key],
-                outputs=[batch.rgb, batch.mask],
+                inputs=[self.points, self.indices, self.uvs, self.colors, self.use_texture, *rays]
+                + [batch.box, batch.pix_off, batch.n, key],
+                outputs=[uv, batch.rgb, batch.mask],
             )
+            if self.use_texture:
+                wp.launch(
+                    raster_kernels.sample_hits, dim=n_pix, inputs=[self.texture, uv, batch.mask], outputs=[batch.rgb]
+                )
         return batch
 
     def render_image(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

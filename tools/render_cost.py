@@ -6,11 +6,13 @@ Poses drawn at random from the reference workload's grid (ycbv test scene 2 imag
 meat can, visible table clipped to 1 m, 1 cm / 0.1 rad); their boxes are cast four ways, each
 launch timed after a warm-up launch (kernel build), best of --repeat:
 
-- render: kernel #1 as the engine runs it (closest hit, texture lookup, colour and mask);
+- render: kernel #1 in its BVH form (`--renderer bvh`: closest hit, texture lookup, colour and mask);
 - closest hit only: the same traversal, writing only the mask;
 - any hit: `wp.mesh_query_ray_anyhit` (the silhouette alone, as the bound pass needs);
 - closest hit with an oracle max_t: each ray's own hit distance (+0.01 %) as the query's limit,
-  the best that carrying a neighbouring pixel's hit distance could do.
+  the best that carrying a neighbouring pixel's hit distance could do;
+- raster: kernel #1's raster form (kernels/raster.py, `--renderer raster`), which must give the same
+  mask and, but for texture-seam ties, the same colours.
 
 Also: the fraction of box pixels that the 11x11 windows of on-mask stride-4 feature points read
 (the most that rendering only the windows' pixels could save). All kernels must agree on the mask.
@@ -115,7 +117,7 @@ def main(argv: list[str] | None = None) -> int:
     boxes = project_boxes(w.camera, w.mesh.hull_points_m(), R, t)
     keep = boxes[:, 2] * boxes[:, 3] > 0
     R, t, boxes = R[keep], t[keep], boxes[keep]
-    renderer = MeshRenderer(w.mesh, args.device)
+    renderer = MeshRenderer(w.mesh, args.device, "bvh")
     cam = w.camera
     pix_off = flat_offsets(boxes)
     n = int(pix_off[-1])
@@ -141,7 +143,8 @@ def main(argv: list[str] | None = None) -> int:
 
         out: dict = {}
         out["render"] = timed(lambda: out.__setitem__("batch", renderer.render(cam, R, t, boxes)))
-        mask = out.pop("batch").mask.numpy()
+        bvh_batch = out.pop("batch")
+        mask, rgb = bvh_batch.mask.numpy(), bvh_batch.rgb.numpy()
         far = wp.full(n, 1.0e6, dtype=float)
         t_hit = wp.empty(n, dtype=float)
         out["closest_hit_only"] = timed(lambda: wp.launch(closest_hit_only, n, inputs=[*common, far], outputs=[t_hit]))
@@ -153,11 +156,17 @@ def main(argv: list[str] | None = None) -> int:
         )
         m_any = wp.empty(n, dtype=wp.uint8)
         out["any_hit"] = timed(lambda: wp.launch(any_hit, n, inputs=common, outputs=[m_any]))
+        raster = MeshRenderer(w.mesh, args.device, "raster")
+        out["raster"] = timed(lambda: out.__setitem__("batch", raster.render(cam, R, t, boxes)))
+        raster_batch = out.pop("batch")
     agree = {
         "closest_hit_only": float(((th > 0) == (mask > 0)).mean()),
         "closest_hit_oracle_max_t": float(((t_hit2.numpy() > 0) == (mask > 0)).mean()),
         "any_hit": float((m_any.numpy() == mask).mean()),
+        "raster": float((raster_batch.mask.numpy() == mask).mean()),
     }
+    hit = mask > 0
+    rgb_same = float((raster_batch.rgb.numpy()[hit] == rgb[hit]).all(1).mean())
     report = {
         "device": args.device,
         "commit": git_commit(),
@@ -166,8 +175,10 @@ def main(argv: list[str] | None = None) -> int:
         "poses": int(len(boxes)),
         "rays": n,
         "hit_fraction": float((mask > 0).mean()),
-        "seconds": {k: out[k] for k in ("render", "closest_hit_only", "any_hit", "closest_hit_oracle_max_t")},
+        "seconds": {k: out[k] for k in ("render", "closest_hit_only", "any_hit", "closest_hit_oracle_max_t", "raster")},
         "mask_agreement_with_render": agree,
+        "raster_back_faces_skipped": raster.cull_back_faces,
+        "raster_same_colour_fraction": rgb_same,
         "window_pixel_fraction": window_fraction(mask, boxes, pix_off),
     }
     print(
@@ -177,10 +188,11 @@ def main(argv: list[str] | None = None) -> int:
     for k, s in report["seconds"].items():
         print(f"  {k:<26}{s:8.3f} s  {n / s / 1e6:6.2f} M rays/s  ({s / report['seconds']['render']:.2f}x render)")
     print(f"  mask agreement with render: {agree}")
+    print(f"  raster: same colour as render on {100 * rgb_same:.4f} % of hit pixels")
     print(f"  box pixels read by on-mask feature windows: {100 * report['window_pixel_fraction']:.1f} %")
     if args.out:
         args.out.write_text(json.dumps(report, indent=1) + "\n")
-    ok = all(v == 1.0 for v in agree.values())
+    ok = all(v == 1.0 for v in agree.values()) and rgb_same >= 0.9999
     return 0 if ok else 1
 
 
