@@ -8,7 +8,9 @@ point instead of one per box pixel (1/stride² of the rays), no texture, no feat
 
 Same flat layout and point order as kernel #2 (kernels/features.py: score_points), and
 the same pixel rays as kernel #1 (kernels/render.py: pixel_ray_m), so a point is on
-the silhouette here exactly when it is on the rendered mask there.
+the silhouette here exactly when it is on the rendered mask there. Each form of kernel #1
+has its own silhouette: any-hit BVH rays for the bvh form, the raster form's own face tests
+(kernels/raster.py: splat_points) for the raster form.
 """
 
 import warp as wp
@@ -48,6 +50,30 @@ def rarity_under_silhouette(
     if not wp.mesh_query_ray_anyhit(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6):
         out[i] = NOT_ON_MASK
         return
+    if not in_box(wp.vec4i(0, 0, rarity.shape[1], rarity.shape[0]), gx, gy):  # beyond the photo, as in kernel #2
+        out[i] = 0.0
+        return
+    out[i] = rarity[gy, gx]
+
+
+@wp.kernel(enable_backward=False)
+def rarity_at_hits(
+    hits: wp.array(dtype=wp.uint8),
+    gbox: wp.array(dtype=wp.vec4i),
+    pt_off: wp.array(dtype=wp.int32),
+    n_cand: int,
+    ks: int,
+    stride: int,
+    rarity: wp.array2d(dtype=float),
+    out: wp.array(dtype=float),
+):
+    """rarity_under_silhouette for the raster form of kernel #1, whose hits per feature point
+    (kernels/raster.py: splat_points, within the rendered box) are already known."""
+    i = wp.tid()
+    if hits[i] == wp.uint8(0):
+        out[i] = NOT_ON_MASK
+        return
+    c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
     if not in_box(wp.vec4i(0, 0, rarity.shape[1], rarity.shape[0]), gx, gy):  # beyond the photo, as in kernel #2
         out[i] = 0.0
         return

@@ -73,13 +73,48 @@ def keep_nearest(keys: wp.array(dtype=wp.int64), i: int, key: wp.int64):
 
 
 @wp.func
-def edge_line(p: wp.vec3, q: wp.vec3):
-    """Line through projected corners p, q (pixels): unit normal n and offset w, so that n . x + w is
-    the signed distance of x from it; and the edge's length."""
+def edge_line(p: wp.vec3, q: wp.vec3) -> wp.vec3:
+    """Line through projected corners p, q (pixels) as (n_x, n_y, w) with n the unit normal, so that
+    n . x + w is the signed distance of x from it (the direction of n depends on the winding)."""
     e = wp.vec2(q[0] - p[0], q[1] - p[1])
-    length = wp.length(e)
-    n = wp.vec2(-e[1], e[0]) / wp.max(length, 1.0e-20)
-    return n, -(n[0] * p[0] + n[1] * p[1]), length
+    n = wp.vec2(-e[1], e[0]) / wp.max(wp.length(e), 1.0e-20)
+    return wp.vec3(n[0], n[1], -(n[0] * p[0] + n[1] * p[1]))
+
+
+@wp.func
+def face_window(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, b: wp.vec4i, min_depth_m: float, cull_back: int):
+    """Face (projected corners q_k = (u, v, depth)) in box b = (x0, y0, w, h): whether it is tested at
+    all (0 for a face turned away when cull_back), the pixel range (u0, v0, u1, v1) its rays may hit,
+    and its edge lines (rows, see edge_line) with whether they may be used to skip pixels."""
+    window = wp.vec4i(b[0], b[1], b[0] + b[2] - 1, b[1] + b[3] - 1)
+    lines = wp.matrix_from_rows(edge_line(q0, q1), edge_line(q1, q2), edge_line(q2, q0))
+    # A corner too near the camera projects nowhere sensible: then every ray of the box is tested.
+    if wp.min(wp.min(q0[2], q1[2]), q2[2]) < min_depth_m:
+        return 1, window, lines, 0
+    if cull_back != 0:
+        area = (q1[0] - q0[0]) * (q2[1] - q0[1]) - (q1[1] - q0[1]) * (q2[0] - q0[0])
+        if area > BACK_FACE_AREA_PX2:
+            return 0, window, lines, 0
+    window = wp.vec4i(
+        wp.max(window[0], int(wp.ceil(wp.min(wp.min(q0[0], q1[0]), q2[0]) - SLACK_PX))),
+        wp.max(window[1], int(wp.ceil(wp.min(wp.min(q0[1], q1[1]), q2[1]) - SLACK_PX))),
+        wp.min(window[2], int(wp.floor(wp.max(wp.max(q0[0], q1[0]), q2[0]) + SLACK_PX))),
+        wp.min(window[3], int(wp.floor(wp.max(wp.max(q0[1], q1[1]), q2[1]) + SLACK_PX))),
+    )
+    l0 = wp.length(wp.vec2(q1[0] - q0[0], q1[1] - q0[1]))
+    l1 = wp.length(wp.vec2(q2[0] - q1[0], q2[1] - q1[1]))
+    l2 = wp.length(wp.vec2(q0[0] - q2[0], q0[1] - q2[1]))
+    shortest = wp.min(wp.min(l0, l1), l2)
+    usable = shortest >= MIN_EDGE_PX and shortest * MAX_EDGE_RATIO >= wp.max(wp.max(l0, l1), l2)
+    return 1, window, lines, wp.where(usable, 1, 0)
+
+
+@wp.func
+def outside(lines: wp.mat33, u: int, v: int) -> bool:
+    """Pixel (u, v) clearly outside the face: beyond the slack on the wrong side of an edge for
+    either winding. Its ray cannot hit the face."""
+    d = lines * wp.vec3(float(u), float(v), 1.0)
+    return wp.min(wp.min(d[0], d[1]), d[2]) < -SLACK_PX and wp.max(wp.max(d[0], d[1]), d[2]) > SLACK_PX
 
 
 @wp.kernel(enable_backward=False)
@@ -131,47 +166,82 @@ def splat_faces(
     q1 = uvz[j, i1]
     q2 = uvz[j, i2]
     b = box[c]
-    u0 = b[0]
-    v0 = b[1]
-    u1 = b[0] + b[2] - 1
-    v1 = b[1] + b[3] - 1
-    # A corner too near the camera projects nowhere sensible: then every ray of the box is tested.
-    projected = wp.min(wp.min(q0[2], q1[2]), q2[2]) >= min_depth_m
-    if projected:
-        if cull_back != 0:
-            area = (q1[0] - q0[0]) * (q2[1] - q0[1]) - (q1[1] - q0[1]) * (q2[0] - q0[0])
-            if area > BACK_FACE_AREA_PX2:
-                return
-        u0 = wp.max(u0, int(wp.ceil(wp.min(wp.min(q0[0], q1[0]), q2[0]) - SLACK_PX)))
-        u1 = wp.min(u1, int(wp.floor(wp.max(wp.max(q0[0], q1[0]), q2[0]) + SLACK_PX)))
-        v0 = wp.max(v0, int(wp.ceil(wp.min(wp.min(q0[1], q1[1]), q2[1]) - SLACK_PX)))
-        v1 = wp.min(v1, int(wp.floor(wp.max(wp.max(q0[1], q1[1]), q2[1]) + SLACK_PX)))
-    # Edge k's signed distance (pixels) of pixel (u, v) is n_k . (u, v) + w_k; a pixel clearly
-    # outside (beyond the slack on the wrong side of an edge, for either winding) casts no ray.
-    n0, w0, l0 = edge_line(q0, q1)
-    n1, w1, l1 = edge_line(q1, q2)
-    n2, w2, l2 = edge_line(q2, q0)
-    shortest = wp.min(wp.min(l0, l1), l2)
-    edge_test = projected and shortest >= MIN_EDGE_PX and shortest * MAX_EDGE_RATIO >= wp.max(wp.max(l0, l1), l2)
+    tested, window, lines, use_lines = face_window(q0, q1, q2, b, min_depth_m, cull_back)
+    if tested == 0:
+        return
     a = points[i0]
     bb = points[i1]
     cc = points[i2]
     o = origin_m[c]
     R = rot_c2m[c]
-    for v in range(v0, v1 + 1):
+    for v in range(window[1], window[3] + 1):
         row = pix_off[c] + (v - b[1]) * b[2] - b[0]
-        pv = float(v)
-        for u in range(u0, u1 + 1):
-            if edge_test:
-                pu = float(u)
-                d0 = n0[0] * pu + n0[1] * pv + w0
-                d1 = n1[0] * pu + n1[1] * pv + w1
-                d2 = n2[0] * pu + n2[1] * pv + w2
-                if wp.min(wp.min(d0, d1), d2) < -SLACK_PX and wp.max(wp.max(d0, d1), d2) > SLACK_PX:
+        for u in range(window[0], window[2] + 1):
+            if use_lines != 0:
+                if outside(lines, u, v):
                     continue
             h = ray_triangle(o, pixel_ray_m(u, v, fx, fy, cx, cy, R), a, bb, cc)
             if h[0] > 0.0:
                 keep_nearest(out_key, row + u, hit_key(h[1], f))
+
+
+@wp.kernel(enable_backward=False)
+def splat_points(
+    points: wp.array(dtype=wp.vec3),
+    indices: wp.array(dtype=wp.int32),
+    uvz: wp.array2d(dtype=wp.vec3),
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    rot_c2m: wp.array(dtype=wp.mat33),
+    origin_m: wp.array(dtype=wp.vec3),
+    box: wp.array(dtype=wp.vec4i),
+    gbox: wp.array(dtype=wp.vec4i),
+    pt_off: wp.array(dtype=wp.int32),
+    ks: int,
+    stride: int,
+    c0: int,
+    min_depth_m: float,
+    cull_back: int,
+    out_hit: wp.array(dtype=wp.uint8),
+):
+    """Thread (j, f): mark the feature points of candidate c0 + j (grid box gbox, pixel box box,
+    kernel #2's layout) whose pixel ray hits face f. A point is marked exactly when splat_faces
+    finds a hit at its pixel: the same faces, rays and test; any hit will do."""
+    j, f = wp.tid()
+    c = c0 + j
+    i0 = indices[f * 3 + 0]
+    i1 = indices[f * 3 + 1]
+    i2 = indices[f * 3 + 2]
+    b = box[c]
+    tested, window, lines, use_lines = face_window(uvz[j, i0], uvz[j, i1], uvz[j, i2], b, min_depth_m, cull_back)
+    if tested == 0:
+        return
+    g = gbox[c]
+    half = ks // 2
+    # Feature points are the pixels (half + stride gx, half + stride gy) of grid box g.
+    gx0 = wp.max(g[0], int(wp.ceil(float(window[0] - half) / float(stride))))
+    gx1 = wp.min(g[0] + g[2] - 1, int(wp.floor(float(window[2] - half) / float(stride))))
+    gy0 = wp.max(g[1], int(wp.ceil(float(window[1] - half) / float(stride))))
+    gy1 = wp.min(g[1] + g[3] - 1, int(wp.floor(float(window[3] - half) / float(stride))))
+    a = points[i0]
+    bb = points[i1]
+    cc = points[i2]
+    o = origin_m[c]
+    R = rot_c2m[c]
+    for gy in range(gy0, gy1 + 1):
+        v = half + stride * gy
+        row = pt_off[c] + (gy - g[1]) * g[2] - g[0]
+        for gx in range(gx0, gx1 + 1):
+            if out_hit[row + gx] != wp.uint8(0):
+                continue  # already on the silhouette
+            u = half + stride * gx
+            if use_lines != 0:
+                if outside(lines, u, v):
+                    continue
+            if ray_triangle(o, pixel_ray_m(u, v, fx, fy, cx, cy, R), a, bb, cc)[0] > 0.0:
+                out_hit[row + gx] = wp.uint8(1)
 
 
 @wp.kernel(enable_backward=False)

@@ -13,7 +13,7 @@ import numpy as np
 import warp as wp
 
 from .camera import Camera
-from .kernels.bound import rarity_under_silhouette
+from .kernels.bound import rarity_at_hits, rarity_under_silhouette
 from .render import MeshRenderer, flat_offsets
 from .score import top_alpha_mean_device
 
@@ -42,6 +42,20 @@ def silhouette_points(
     with wp.ScopedDevice(renderer.device):
         out = wp.empty(n_pts, dtype=float)
         offsets = wp.array(pt_off, dtype=wp.int32)
+        if renderer.method == "raster":
+            # The raster form's own silhouette: its mask is what kernel #2 will read.
+            box_arr = wp.array(np.asarray(boxes, dtype=np.int32), dtype=wp.vec4i)
+            gbox_arr = wp.array(gboxes, dtype=wp.vec4i)
+            hits = renderer.silhouette_hits(
+                camera, R_m2c, t_m2c_m, box_arr, gbox_arr, offsets, n_pts, kernel_size, stride
+            )
+            wp.launch(
+                rarity_at_hits,
+                dim=n_pts,
+                inputs=[hits, gbox_arr, offsets, len(gboxes), kernel_size, stride, rarity],
+                outputs=[out],
+            )
+            return out, offsets
         wp.launch(
             rarity_under_silhouette,
             dim=n_pts,

@@ -211,33 +211,7 @@ class MeshRenderer:
                 )
                 return batch
             key = wp.full(n_pix, raster_kernels.NO_HIT, dtype=wp.int64)
-            n_points = len(self.points)
-            chunk = max(1, VERTEX_SLOTS // n_points)
-            uvz = wp.empty((min(chunk, batch.n), n_points), dtype=wp.vec3)
-            for c0 in range(0, batch.n, chunk):
-                m = min(chunk, batch.n - c0)
-                wp.launch(
-                    raster_kernels.project_points,
-                    dim=(m, n_points),
-                    inputs=[self.points, *rays, c0, MIN_DEPTH_M],
-                    outputs=[uvz],
-                )
-                wp.launch(
-                    raster_kernels.splat_faces,
-                    dim=(m, len(self.indices) // 3),
-                    inputs=[
-                        self.points,
-                        self.indices,
-                        uvz,
-                        *rays,
-                        batch.box,
-                        batch.pix_off,
-                        c0,
-                        MIN_DEPTH_M,
-                        int(self.cull_back_faces),
-                    ],
-                    outputs=[key],
-                )
+            self._per_face(raster_kernels.splat_faces, rays, [batch.box, batch.pix_off], key)
             uv = wp.empty(n_pix if self.use_texture else 1, dtype=wp.vec2)
             wp.launch(
                 raster_kernels.locate_hits,
@@ -251,6 +225,52 @@ class MeshRenderer:
                     raster_kernels.sample_hits, dim=n_pix, inputs=[self.texture, uv, batch.mask], outputs=[batch.rgb]
                 )
         return batch
+
+    def _per_face(self, kernel, rays: list, per_candidate: list, out: wp.array) -> None:
+        """Launch a raster kernel over (candidate, face), candidates in chunks of at most VERTEX_SLOTS
+        projected vertices: project_points, then `kernel` with the mesh, projections, rays, the
+        arrays `per_candidate`, the chunk's first candidate and the culling flag; it writes `out`."""
+        n_cand = len(rays[4])
+        n_points = len(self.points)
+        chunk = max(1, VERTEX_SLOTS // n_points)
+        uvz = wp.empty((min(chunk, n_cand), n_points), dtype=wp.vec3)
+        for c0 in range(0, n_cand, chunk):
+            m = min(chunk, n_cand - c0)
+            wp.launch(
+                raster_kernels.project_points,
+                dim=(m, n_points),
+                inputs=[self.points, *rays, c0, MIN_DEPTH_M],
+                outputs=[uvz],
+            )
+            wp.launch(
+                kernel,
+                dim=(m, len(self.indices) // 3),
+                inputs=[self.points, self.indices, uvz, *rays, *per_candidate, c0, MIN_DEPTH_M]
+                + [int(self.cull_back_faces)],
+                outputs=[out],
+            )
+
+    def silhouette_hits(
+        self,
+        camera: Camera,
+        R_m2c: np.ndarray,
+        t_m2c_m: np.ndarray,
+        boxes: wp.array,
+        gboxes: wp.array,
+        pt_off: wp.array,
+        n_points: int,
+        kernel_size: int,
+        stride: int,
+    ) -> wp.array:
+        """Raster form only: uint8 per feature point (kernel #2's layout), 1 where the point's pixel ray
+        hits the mesh: exactly the points this renderer's mask covers."""
+        if self.method != "raster":
+            raise PerchError("silhouette_hits needs the raster form (the bvh form's bound casts any-hit rays)")
+        rays = self.ray_inputs(camera, R_m2c, t_m2c_m)
+        with wp.ScopedDevice(self.device):
+            hits = wp.zeros(n_points, dtype=wp.uint8)
+            self._per_face(raster_kernels.splat_points, rays, [boxes, gboxes, pt_off, kernel_size, stride], hits)
+        return hits
 
     def render_image(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The whole image for one pose: RGB float32 (H, W, 3) in [0, 1] and mask bool (H, W)."""

@@ -39,10 +39,15 @@ def _candidates(engine, scene, space, camera):
     return photo, R[live], t[live], boxes[live], gboxes[live]
 
 
-def test_points_are_the_rendered_masks_feature_points_with_their_rarity(scene, random_weights):
+RENDERERS = pytest.mark.parametrize("renderer", ["bvh", "raster"])
+
+
+@RENDERERS
+def test_points_are_the_rendered_masks_feature_points_with_their_rarity(scene, random_weights, renderer):
     """The bound's silhouette is the mask kernel #2 scores on, point for point, and its values are
-    the photo's rarity there (0 beyond the photo): compared with the scorer's own output."""
-    engine = Engine(scene.mesh, random_weights, DEVICE)
+    the photo's rarity there (0 beyond the photo): compared with the scorer's own output. Each form
+    of kernel #1 has its own silhouette pass (any-hit BVH rays; the raster form's face tests)."""
+    engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(renderer=renderer))
     # Some boxes run off the image so that points beyond the photo are exercised too.
     space = SearchSpace((-0.3, 0.3), (-0.3, 0.3), 0.15, (0, 2 * math.pi), math.radians(60))
     photo, R, t, boxes, gboxes = _candidates(engine, scene, space, scene.camera)
@@ -69,8 +74,9 @@ def test_points_are_the_rendered_masks_feature_points_with_their_rarity(scene, r
     assert (on & outside).any() and np.all(v[on & outside] == 0.0)
 
 
-def test_bound_is_never_below_the_score(scene, random_weights):
-    engine = Engine(scene.mesh, random_weights, DEVICE)
+@RENDERERS
+def test_bound_is_never_below_the_score(scene, random_weights, renderer):
+    engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(renderer=renderer))
     photo, R, t, boxes, gboxes = _candidates(engine, scene, _space(scene), scene.camera)
     ks, s, alpha = random_weights.kernel_size, engine.config.stride, engine.config.alpha
     bounds = silhouette_bounds(engine.renderer, scene.camera, R, t, boxes, gboxes, photo.rarity, ks, s, alpha)
@@ -93,13 +99,15 @@ def test_next_to_score_takes_the_bounds_that_can_still_reach_the_threshold():
     assert next_to_score(ranked, 0, 2.0) == 0
 
 
-@pytest.mark.parametrize("threads", [1, 2])
-def test_pruned_search_returns_the_exhaustive_top_k_scoring_fewer(scene, caffe_weights, threads):
+@pytest.mark.parametrize("threads,renderer", [(1, "bvh"), (2, "raster")])
+def test_pruned_search_returns_the_exhaustive_top_k_scoring_fewer(scene, caffe_weights, threads, renderer):
     space = _space(scene)
     args = (scene.image, scene.camera, scene.table, scene.resting, space)
 
     def run(search):
-        config = EngineConfig(search=search, top_k=5, batch_pixels=20000, cpu_threads=threads, refine=False)
+        config = EngineConfig(
+            search=search, top_k=5, batch_pixels=20000, cpu_threads=threads, refine=False, renderer=renderer
+        )
         return Engine(scene.mesh, caffe_weights, DEVICE, config).estimate(*args)
 
     full, pruned = run("exhaustive"), run("pruned")
@@ -113,10 +121,11 @@ def test_pruned_search_returns_the_exhaustive_top_k_scoring_fewer(scene, caffe_w
     assert "bound" in pruned.timings_s
 
 
-def test_bound_kernel_runs_on_empty_input(random_weights):
+@RENDERERS
+def test_bound_kernel_runs_on_empty_input(random_weights, renderer):
     """No candidates: no launch, no error (a batch can come out empty at the end of a round)."""
     scene = demo_scene(seed=1)
-    engine = Engine(scene.mesh, random_weights, DEVICE)
+    engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(renderer=renderer))
     scorer = FeatureScorer(random_weights, DEVICE, 4)
     rarity = wp.zeros((2, 2), dtype=float, device=DEVICE)
     empty = np.zeros((0, 4), np.int32)

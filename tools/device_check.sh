@@ -1,7 +1,8 @@
 #!/usr/bin/env bash
 # The GPU checks of one device session, prepared so that they fit one `run` call:
 # the kernel tests on the GPU (against the same NumPy references as on the CPU), the
-# reference workload with each search, and the BVH build options.
+# reference workload with each search and with the raster form of kernel #1, and the BVH
+# build options.
 #
 #   PERCH_WARP_COMMIT=<sha of the code> OUT=<folder> tools/device_check.sh [cuda:0]
 #
@@ -34,9 +35,14 @@ step() {
 }
 
 step kernel_tests env PERCH_WARP_TEST_DEVICE="$DEV" python3 -m pytest -q -p no:cacheprovider \
-  tests/test_render.py tests/test_features.py tests/test_score.py tests/test_bound.py tests/test_engine.py tests/test_refine.py
+  tests/test_render.py tests/test_raster.py tests/test_features.py tests/test_score.py tests/test_bound.py \
+  tests/test_engine.py tests/test_refine.py
 for s in exhaustive pruned coarse-to-fine; do
   step "bench_$s" python3 -m perch_warp bench --device "$DEV" --search "$s" --repeat 3 --no-peer --out "$OUT/bench_$s"
 done
+# The raster form of kernel #1 (auto picks it on the CPU only): is it faster on this GPU too?
+step bench_exhaustive_raster python3 -m perch_warp bench --device "$DEV" --search exhaustive --renderer raster \
+  --repeat 3 --no-peer --out "$OUT/bench_exhaustive_raster"
+step render_cost python3 tools/render_cost.py --device "$DEV" --poses 3000
 step bvh_options python3 tools/bvh_options.py --device "$DEV" --poses 3000 --leaf-sizes 1 2 4 8
-grep -h -E "^(commit|search|total|refine|candidates|throughput|refinement|pose found)" "$OUT"/bench_*/bench.txt 2>/dev/null
+grep -h -E "^(commit|search|renderer|total|refine|candidates|throughput|refinement|pose found)" "$OUT"/bench_*/bench.txt 2>/dev/null

@@ -24,14 +24,16 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
 import warp as wp
 from perch_warp.kernels.render import box_pixel, pixel_ray_m
 
-from perch_warp.bench import add_frame_arguments, default_dataset, git_commit, load_workload
+from perch_warp.bench import add_frame_arguments, default_dataset, git_commit, load_workload, search_camera
 from perch_warp.features import caffe_weights_path
+from perch_warp.mesh import ObjectMesh
 from perch_warp.render import MeshRenderer, flat_offsets, project_boxes
 from perch_warp.table import model_to_camera
 
@@ -95,6 +97,24 @@ def window_fraction(mask: np.ndarray, boxes: np.ndarray, pix_off: np.ndarray, ks
     return need / total
 
 
+def subdivided(mesh: ObjectMesh, times: int) -> ObjectMesh:
+    """`mesh` with every face split into 4 at its edge midpoints (UVs, colours alike), `times` times:
+    the same surface and appearance with 4^times the faces."""
+    import trimesh
+
+    V, F = mesh.vertices_m, mesh.faces
+    attrs = {k: a for k, a in (("uv", mesh.uv), ("colors", mesh.vertex_colors)) if a is not None}
+    for _ in range(times):
+        V, F, attrs = trimesh.remesh.subdivide(V, F, vertex_attributes=attrs)
+    return replace(
+        mesh,
+        vertices_m=np.asarray(V),
+        faces=np.asarray(F, np.int32),
+        uv=None if mesh.uv is None else np.asarray(attrs["uv"], np.float32),
+        vertex_colors=None if mesh.vertex_colors is None else np.asarray(attrs["colors"], np.float32),
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_frame_arguments(ap)
@@ -102,8 +122,21 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--poses", type=int, default=300, help="random poses of the reference grid (default 300)")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeat", type=int, default=2, help="timed launches per variant, best kept (default 2)")
+    ap.add_argument(
+        "--image-scale", type=float, default=1.0, help="the photo resized by this factor, as the search's option"
+    )
+    ap.add_argument(
+        "--subdivide",
+        type=int,
+        default=0,
+        help="split every face into 4 this many times (the same surface, 4^N x the faces): how the two "
+        "forms of kernel #1 scale with the face count",
+    )
     ap.add_argument("--out", type=Path, default=None, help="write the figures here as JSON")
     args = ap.parse_args(argv)
+    if not (0 < args.image_scale <= 1) or args.subdivide < 0:
+        print("render_cost: --image-scale must be in (0, 1] and --subdivide >= 0", file=sys.stderr)
+        return 1
     dataset = args.dataset or default_dataset()
     if dataset is None or caffe_weights_path() is None:
         print("render_cost: shared/data/ycbv not found (set PERCH_WARP_SHARED)", file=sys.stderr)
@@ -111,14 +144,15 @@ def main(argv: list[str] | None = None) -> int:
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     w = load_workload(dataset, args.scene, args.image, args.obj, 1.0, 0.01, 0.1)
+    mesh = subdivided(w.mesh, args.subdivide)
+    cam = search_camera(w.camera, args.image_scale)
     x, y, yaw = w.space.candidates()
     pick = np.random.default_rng(args.seed).choice(len(x), min(args.poses, len(x)), replace=False)
     R, t = model_to_camera(w.table, w.resting, x[pick], y[pick], yaw[pick])
-    boxes = project_boxes(w.camera, w.mesh.hull_points_m(), R, t)
+    boxes = project_boxes(cam, mesh.hull_points_m(), R, t)
     keep = boxes[:, 2] * boxes[:, 3] > 0
     R, t, boxes = R[keep], t[keep], boxes[keep]
-    renderer = MeshRenderer(w.mesh, args.device, "bvh")
-    cam = w.camera
+    renderer = MeshRenderer(mesh, args.device, "bvh")
     pix_off = flat_offsets(boxes)
     n = int(pix_off[-1])
     with wp.ScopedDevice(args.device):
@@ -156,7 +190,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         m_any = wp.empty(n, dtype=wp.uint8)
         out["any_hit"] = timed(lambda: wp.launch(any_hit, n, inputs=common, outputs=[m_any]))
-        raster = MeshRenderer(w.mesh, args.device, "raster")
+        raster = MeshRenderer(mesh, args.device, "raster")
         out["raster"] = timed(lambda: out.__setitem__("batch", raster.render(cam, R, t, boxes)))
         raster_batch = out.pop("batch")
     agree = {
@@ -171,7 +205,9 @@ def main(argv: list[str] | None = None) -> int:
         "device": args.device,
         "commit": git_commit(),
         "command": " ".join(["python", "tools/render_cost.py", *sys.argv[1:]]),
-        "mesh_faces": int(len(w.mesh.faces)),
+        "mesh_faces": int(len(mesh.faces)),
+        "subdivide": args.subdivide,
+        "image_scale": args.image_scale,
         "poses": int(len(boxes)),
         "rays": n,
         "hit_fraction": float((mask > 0).mean()),
@@ -183,7 +219,7 @@ def main(argv: list[str] | None = None) -> int:
     }
     print(
         f"{report['poses']} poses, {n:,} rays ({100 * report['hit_fraction']:.1f} % hit), "
-        f"mesh {report['mesh_faces']} faces, {args.device}, commit {report['commit']}"
+        f"mesh {report['mesh_faces']} faces, image {cam.width}x{cam.height}, {args.device}, commit {report['commit']}"
     )
     for k, s in report["seconds"].items():
         print(f"  {k:<26}{s:8.3f} s  {n / s / 1e6:6.2f} M rays/s  ({s / report['seconds']['render']:.2f}x render)")
