@@ -24,8 +24,9 @@ SLACK_PX = wp.constant(0.05)
 # a point's distance to a short edge's line magnifies the rounding of its corners.
 MIN_EDGE_PX = wp.constant(0.25)
 MAX_EDGE_RATIO = wp.constant(64.0)
-# Faces whose projection has at least this area (pixels², y down) facing away are skipped when the
-# mesh is closed: from outside a closed surface the nearest hit is always on a face turned towards the ray.
+# Faces whose projection has more than this area (pixels², y down; times 1 + the face's extent in
+# pixels) facing away are skipped when the mesh is closed: from outside a closed surface the nearest
+# hit is always on a face turned towards the ray.
 BACK_FACE_AREA_PX2 = wp.constant(1.0e-3)
 
 
@@ -84,29 +85,42 @@ def edge_line(p: wp.vec3, q: wp.vec3) -> wp.vec3:
 @wp.func
 def face_window(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, b: wp.vec4i, min_depth_m: float, cull_back: int):
     """Face (projected corners q_k = (u, v, depth)) in box b = (x0, y0, w, h): whether it is tested at
-    all (0 for a face turned away when cull_back), the pixel range (u0, v0, u1, v1) its rays may hit,
-    and its edge lines (rows, see edge_line) with whether they may be used to skip pixels."""
+    all (0 for a face turned away when cull_back) and the pixel range (u0, v0, u1, v1) its rays may hit."""
     window = wp.vec4i(b[0], b[1], b[0] + b[2] - 1, b[1] + b[3] - 1)
-    lines = wp.matrix_from_rows(edge_line(q0, q1), edge_line(q1, q2), edge_line(q2, q0))
     # A corner too near the camera projects nowhere sensible: then every ray of the box is tested.
     if wp.min(wp.min(q0[2], q1[2]), q2[2]) < min_depth_m:
-        return 1, window, lines, 0
+        return 1, window
     if cull_back != 0:
         area = (q1[0] - q0[0]) * (q2[1] - q0[1]) - (q1[1] - q0[1]) * (q2[0] - q0[0])
-        if area > BACK_FACE_AREA_PX2:
-            return 0, window, lines, 0
+        # The projection's rounding moves the area by about 1e-4 px times the face's extent: only
+        # faces clearly turned away are skipped, never one seen nearly edge-on.
+        extent = wp.max(
+            wp.max(wp.max(q0[0], q1[0]), q2[0]) - wp.min(wp.min(q0[0], q1[0]), q2[0]),
+            wp.max(wp.max(q0[1], q1[1]), q2[1]) - wp.min(wp.min(q0[1], q1[1]), q2[1]),
+        )
+        if area > BACK_FACE_AREA_PX2 * (1.0 + extent):
+            return 0, window
     window = wp.vec4i(
         wp.max(window[0], int(wp.ceil(wp.min(wp.min(q0[0], q1[0]), q2[0]) - SLACK_PX))),
         wp.max(window[1], int(wp.ceil(wp.min(wp.min(q0[1], q1[1]), q2[1]) - SLACK_PX))),
         wp.min(window[2], int(wp.floor(wp.max(wp.max(q0[0], q1[0]), q2[0]) + SLACK_PX))),
         wp.min(window[3], int(wp.floor(wp.max(wp.max(q0[1], q1[1]), q2[1]) + SLACK_PX))),
     )
+    return 1, window
+
+
+@wp.func
+def face_lines(q0: wp.vec3, q1: wp.vec3, q2: wp.vec3, min_depth_m: float):
+    """The face's edge lines (rows, see edge_line) and whether they may be used to skip pixels
+    (all corners projected, edges neither too short nor too unequal)."""
+    lines = wp.matrix_from_rows(edge_line(q0, q1), edge_line(q1, q2), edge_line(q2, q0))
     l0 = wp.length(wp.vec2(q1[0] - q0[0], q1[1] - q0[1]))
     l1 = wp.length(wp.vec2(q2[0] - q1[0], q2[1] - q1[1]))
     l2 = wp.length(wp.vec2(q0[0] - q2[0], q0[1] - q2[1]))
     shortest = wp.min(wp.min(l0, l1), l2)
     usable = shortest >= MIN_EDGE_PX and shortest * MAX_EDGE_RATIO >= wp.max(wp.max(l0, l1), l2)
-    return 1, window, lines, wp.where(usable, 1, 0)
+    usable = usable and wp.min(wp.min(q0[2], q1[2]), q2[2]) >= min_depth_m
+    return lines, wp.where(usable, 1, 0)
 
 
 @wp.func
@@ -166,9 +180,10 @@ def splat_faces(
     q1 = uvz[j, i1]
     q2 = uvz[j, i2]
     b = box[c]
-    tested, window, lines, use_lines = face_window(q0, q1, q2, b, min_depth_m, cull_back)
-    if tested == 0:
+    tested, window = face_window(q0, q1, q2, b, min_depth_m, cull_back)
+    if tested == 0 or window[0] > window[2] or window[1] > window[3]:
         return
+    lines, use_lines = face_lines(q0, q1, q2, min_depth_m)
     a = points[i0]
     bb = points[i1]
     cc = points[i2]
@@ -215,7 +230,10 @@ def splat_points(
     i1 = indices[f * 3 + 1]
     i2 = indices[f * 3 + 2]
     b = box[c]
-    tested, window, lines, use_lines = face_window(uvz[j, i0], uvz[j, i1], uvz[j, i2], b, min_depth_m, cull_back)
+    q0 = uvz[j, i0]
+    q1 = uvz[j, i1]
+    q2 = uvz[j, i2]
+    tested, window = face_window(q0, q1, q2, b, min_depth_m, cull_back)
     if tested == 0:
         return
     g = gbox[c]
@@ -225,6 +243,9 @@ def splat_points(
     gx1 = wp.min(g[0] + g[2] - 1, int(wp.floor(float(window[2] - half) / float(stride))))
     gy0 = wp.max(g[1], int(wp.ceil(float(window[1] - half) / float(stride))))
     gy1 = wp.min(g[1] + g[3] - 1, int(wp.floor(float(window[3] - half) / float(stride))))
+    if gx0 > gx1 or gy0 > gy1:
+        return  # no feature point in reach: most faces, at stride 4
+    lines, use_lines = face_lines(q0, q1, q2, min_depth_m)
     a = points[i0]
     bb = points[i1]
     cc = points[i2]
