@@ -614,7 +614,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--renderer",
         default="auto",
         choices=["auto", "bvh", "raster"],
-        help="kernel #1's form: bvh or raster (same images); auto: raster on the CPU, bvh on a GPU",
+        help="kernel #1's form: bvh or raster (same images); auto: by faces per box pixel on the CPU, bvh on a GPU",
     )
     m.add_argument("--image-scale", type=float, default=1.0, help="search on the photo resized by this factor")
     m.add_argument("--cpu-threads", type=int, default=None, help="CPU device: batches at once (default: one per core)")

@@ -86,7 +86,8 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
         default="auto",
         choices=["auto", "bvh", "raster"],
         help="how rays find the mesh: bvh (Warp's mesh query per ray) or raster (each triangle tests the rays "
-        "it covers; the same images); auto: raster on the CPU, bvh on a GPU (default)",
+        "it covers; the same images); auto (default): on the CPU raster unless the mesh has over 16 faces per "
+        "pixel of a candidate's box, on a GPU bvh",
     )
     g.add_argument(
         "--batch-pixels", type=int, default=None, help="rendered pixels per batch (default: sized to the device)"
@@ -177,18 +178,29 @@ def build_engine(args: argparse.Namespace, mesh, quiet: bool = False):
             + ("" if args.device else " (chosen automatically; --device to override)")
             + (f", {threads} CPU threads (--cpu-threads to change)" if threads > 1 else "")
         )
-        log(renderer_line(engine))
     return engine
 
 
-def renderer_line(engine) -> str:
-    """Which renderer runs and why (the option, the device, whether back faces are skipped)."""
-    r = engine.renderer
-    why = f" (auto on {engine.device})" if engine.config.renderer == "auto" else ""
-    if r.method == "raster":
-        faces = "closed mesh: back faces skipped" if r.cull_back_faces else "open mesh: every face tested"
-        return f"renderer: raster{why}, {faces} (--renderer bvh for Warp's per-ray mesh query)"
-    return f"renderer: bvh{why} (--renderer raster tests rays per triangle, faster on a CPU)"
+def renderer_line(result) -> str:
+    """Which form of kernel #1 ran and why (the option, the device and rule, back faces skipped or not)."""
+    from .render import RASTER_FACES_PER_PIXEL
+
+    info = result.info
+    method = info["renderer"]
+    why = ""
+    if info.get("renderer_option") == "auto":
+        why = f" (auto on {result.device}"
+        if "median_box_px" in info:
+            rel = "<=" if method == "raster" else ">"
+            why += (
+                f": {info['mesh_faces']:,} faces {rel} {RASTER_FACES_PER_PIXEL} x the median candidate box, "
+                f"{info['median_box_px']:,.0f} px"
+            )
+        why += ")"
+    if method == "raster":
+        faces = "closed mesh: back faces skipped" if info["cull_back_faces"] else "open mesh: every face tested"
+        return f"renderer: raster{why}, {faces}"
+    return f"renderer: bvh{why}"
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:
@@ -306,6 +318,7 @@ def run_estimate(args: argparse.Namespace) -> int:
     )
     print(timing_line(result))
     print(search_summary(result))
+    print(renderer_line(result))
     if truth is not None:
         from .pose_error import add, adi
 

@@ -27,7 +27,7 @@ from .image import check_rgb
 from .mesh import ObjectMesh
 from .rarity import rarity as rarity_fn
 from .refine import cell_space
-from .render import MIN_DEPTH_M, RENDERERS, BoxProjector, MeshRenderer, resolve_renderer
+from .render import MIN_DEPTH_M, RENDERERS, BoxProjector, MeshRenderer, auto_renderer
 from .result import Candidate, Result
 from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean_device
 from .search_space import SearchSpace
@@ -70,7 +70,8 @@ class EngineConfig:
     refine_yaw_rad: float = math.radians(1.0)
     refine_cells: int = 1  # grid steps either side of the best grid pose that the refinement searches
     # How kernel #1 finds each ray's surface (perch_warp.render): "bvh", "raster" (the same images),
-    # or "auto": raster on the CPU (measured faster there), bvh on a GPU (the raster form is not measured there).
+    # or "auto": per search on the CPU, raster unless the mesh has many faces per pixel of the
+    # candidates' boxes (render.auto_renderer); bvh on a GPU (the raster form is not measured there).
     renderer: str = "auto"
 
     def __post_init__(self) -> None:
@@ -149,7 +150,9 @@ class Engine:
         self.mesh = mesh
         self.weights = weights
         t0 = time.perf_counter()
-        self.renderer = MeshRenderer(mesh, self.device, resolve_renderer(self.config.renderer, self.device))
+        self.renderer = MeshRenderer(
+            mesh, self.device, "bvh" if self.config.renderer == "auto" else self.config.renderer
+        )
         self.scorer = FeatureScorer(weights, self.device, self.config.stride, self.config.relu)
         self.scorer.warm_up()
         # Build now: compile time is not a search stage's.
@@ -182,6 +185,7 @@ class Engine:
         cfg = self.config
         timings: dict[str, float] = {}
         image_rgb, camera = self._begin(image_rgb, camera)
+        renderer_info = self._pick_renderer(camera, table, resting, space)
         bar = None
         if progress:
             from tqdm import tqdm
@@ -235,9 +239,7 @@ class Engine:
                 "seed": cfg.seed,
                 "search": self.search,
                 "search_option": cfg.search,  # as asked: "auto" or the search itself
-                "renderer": self.renderer.method,
-                "renderer_option": cfg.renderer,  # as asked: "auto" or the renderer itself
-                "cull_back_faces": self.renderer.cull_back_faces,  # raster on a closed mesh only
+                **renderer_info,
                 "image_scale": cfg.image_scale,
                 "search_space": space.describe(),
                 "evaluated": evaluated,  # candidates scored (rendered and compared)
@@ -304,6 +306,26 @@ class Engine:
         self._bound_some(photo, camera, R, tr, boxes, gboxes, live, bounds, timings)
         self._score_some(photo, camera, R, tr, boxes, gboxes, live, scores, timings)
         return {"x_m": x, "y_m": y, "yaw_rad": yaw, "bound": bounds, "score": scores}
+
+    def _pick_renderer(self, camera: Camera, table: Table, resting: RestingPose, space: SearchSpace) -> dict:
+        """Set the renderer for this search (--renderer auto: render.auto_renderer, from the median
+        box of up to 256 of the space's candidates, drawn with a fixed seed); what ran, for the result."""
+        info: dict = {"renderer_option": self.config.renderer, "mesh_faces": int(len(self.mesh.faces))}
+        if self.config.renderer == "auto":
+            median = 0.0
+            if wp.get_device(self.device).is_cpu:
+                x, y, yaw = space.candidates()
+                pick = np.random.default_rng(0).choice(len(x), min(256, len(x)), replace=False)
+                R, t = model_to_camera(table, resting, x[pick], y[pick], yaw[pick])
+                boxes = self.boxes(camera, R, t)
+                shown = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)  # -1: behind the camera, 0: outside the image
+                areas = boxes[shown, 2].astype(np.int64) * boxes[shown, 3]
+                median = float(np.median(areas)) if len(areas) else 0.0
+                info["median_box_px"] = median
+            self.renderer.use(auto_renderer(self.device, info["mesh_faces"], median))
+        info["renderer"] = self.renderer.method
+        info["cull_back_faces"] = self.renderer.cull_back_faces  # raster on a closed mesh only
+        return info
 
     def _begin(self, image_rgb: np.ndarray, camera: Camera) -> tuple[np.ndarray, Camera]:
         """Zero the per-search counters; the photo and camera the search runs on (image_scale applied)."""

@@ -9,6 +9,7 @@ which is faster on a CPU (docs/performance.md, "Raster form of kernel #1").
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -23,20 +24,23 @@ from .mesh import ObjectMesh
 
 # Candidates closer than this to the camera plane cannot be rendered sensibly.
 MIN_DEPTH_M = 0.02
-# "auto": raster on the CPU (measured faster there), bvh on a GPU (where the raster form is not measured).
+# "auto": on the CPU raster or bvh by RASTER_FACES_PER_PIXEL, on a GPU bvh (the raster form is not measured there).
 RENDERERS = ("auto", "bvh", "raster")
+# The raster form's cost grows with faces x candidates, the BVH form's with rays (pixels): on the CPU
+# the raster form was measured faster up to about 20 faces per pixel of a candidate's box and slower
+# at 80 (docs/performance.md, "Raster form of kernel #1"); auto picks it up to this many.
+RASTER_FACES_PER_PIXEL = 16
 # The raster form projects every vertex for every candidate: at most this many (candidate, vertex)
 # pairs at once (12 bytes each), so memory stays bounded whatever the batch.
 VERTEX_SLOTS = 1 << 22
 
 
-def resolve_renderer(renderer: str, device: str) -> str:
-    """What a renderer option means on `device`: "auto" is raster on the CPU, bvh on a GPU."""
-    if renderer not in RENDERERS:
-        raise PerchError(f"renderer must be one of {', '.join(RENDERERS)}, got {renderer!r}")
-    if renderer != "auto":
-        return renderer
-    return "raster" if wp.get_device(device).is_cpu else "bvh"
+def auto_renderer(device: str, n_faces: int, median_box_px: float) -> str:
+    """What --renderer auto runs: bvh on a GPU; on the CPU raster unless the mesh has more than
+    RASTER_FACES_PER_PIXEL faces per pixel of the median candidate box."""
+    if not wp.get_device(device).is_cpu:
+        return "bvh"
+    return "raster" if n_faces <= RASTER_FACES_PER_PIXEL * median_box_px else "bvh"
 
 
 def is_closed_surface(vertices_m: np.ndarray, faces: np.ndarray) -> bool:
@@ -150,13 +154,9 @@ class MeshRenderer:
     by `method`: "bvh" (kernels/render.py) or "raster" (kernels/raster.py), the same images."""
 
     def __init__(self, mesh: ObjectMesh, device: str, method: str = "bvh"):
-        if method not in ("bvh", "raster"):
-            raise PerchError(f"renderer method must be bvh or raster, got {method!r}")
         self.device = device
         self.mesh = mesh
-        self.method = method
-        # Only the raster form can skip faces; it does when that cannot change a pixel.
-        self.cull_back_faces = method == "raster" and is_closed_surface(mesh.vertices_m, mesh.faces)
+        self.use(method)
         with wp.ScopedDevice(device):
             self.points = wp.array(mesh.vertices_m.astype(np.float32), dtype=wp.vec3)
             self.indices = wp.array(mesh.faces.reshape(-1).astype(np.int32), dtype=wp.int32)
@@ -171,6 +171,22 @@ class MeshRenderer:
                 self.uvs = wp.zeros(1, dtype=wp.vec2)
                 self.texture = wp.zeros((1, 1), dtype=wp.vec3)
                 self.colors = wp.array(mesh.vertex_colors.astype(np.float32), dtype=wp.vec3)
+
+    def use(self, method: str) -> None:
+        """Render with `method` from now on: "bvh" or "raster" (the same images)."""
+        if method not in ("bvh", "raster"):
+            raise PerchError(f"renderer method must be bvh or raster, got {method!r}")
+        self.method = method
+
+    @functools.cached_property
+    def closed_surface(self) -> bool:
+        """The mesh closes a volume, outward (is_closed_surface); computed on first use."""
+        return is_closed_surface(self.mesh.vertices_m, self.mesh.faces)
+
+    @property
+    def cull_back_faces(self) -> bool:
+        """Only the raster form skips faces, and only where that cannot change a pixel."""
+        return self.method == "raster" and self.closed_surface
 
     def ray_inputs(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> list:
         """The kernel inputs that define the candidates' pixel rays (kernels/render.py: pixel_ray_m):

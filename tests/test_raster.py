@@ -15,7 +15,7 @@ from perch_warp.demo import label_texture, look_at_table, striped_cylinder, text
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
 from perch_warp.mesh import ObjectMesh
-from perch_warp.render import MeshRenderer, is_closed_surface, project_boxes, resolve_renderer
+from perch_warp.render import MeshRenderer, auto_renderer, is_closed_surface, project_boxes
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import RestingPose, model_to_camera
 
@@ -88,7 +88,7 @@ def test_open_mesh_needs_its_back_faces(box):
     boxes = project_boxes(CAM, opened.hull_points_m(), R, t)
     (m0, c0), (m1, c1) = _both(opened, CAM, R, t, boxes)
     r = MeshRenderer(opened, DEVICE, "raster")
-    r.cull_back_faces = True  # what a wrong closed-mesh test would do
+    r.closed_surface = True  # what a wrong closed-mesh test would do
     b = r.render(CAM, R, t, boxes)
     assert np.array_equal(m0, m1) and (b.mask.numpy() != m0).sum() > 100
 
@@ -103,16 +103,17 @@ def test_memory_chunks_give_the_same_image(box, monkeypatch):
     assert np.array_equal(whole.rgb.numpy(), chunked.rgb.numpy())
 
 
-def test_renderer_option():
-    assert resolve_renderer("auto", "cpu") == "raster"
-    assert resolve_renderer("bvh", "cpu") == "bvh"
-    with pytest.raises(PerchError, match="renderer"):
-        resolve_renderer("opengl", "cpu")
+def test_renderer_option(box):
+    # auto on the CPU: raster up to RASTER_FACES_PER_PIXEL faces per pixel of the median box.
+    assert render.RASTER_FACES_PER_PIXEL == 16
+    assert auto_renderer("cpu", 16_384, 1_024) == "raster" and auto_renderer("cpu", 16_385, 1_024) == "bvh"
+    with pytest.raises(PerchError, match="bvh or raster"):
+        MeshRenderer(box, DEVICE, "opengl")
     with pytest.raises(PerchError, match="--renderer"):
         EngineConfig(renderer="opengl")
 
 
-def test_engine_scores_equal_for_both_renderers(box, random_weights):
+def test_engine_scores_equal_for_both_renderers(box, random_weights, monkeypatch):
     rng = np.random.default_rng(6)
     R, t = _poses(box, 1, seed=7, spread_m=0.03)
     image = MeshRenderer(box, DEVICE).render_image(CAM, R[0], t[0])[0]
@@ -125,8 +126,18 @@ def test_engine_scores_equal_for_both_renderers(box, random_weights):
         cfg = EngineConfig(search="exhaustive", refine=False, top_k=len(space), renderer=method)
         results[method] = Engine(box, random_weights, DEVICE, cfg).estimate(image, CAM, TABLE, rp, space)
     a, b = results["bvh"], results["raster"]
-    auto = Engine(box, random_weights, DEVICE, EngineConfig())
-    assert renderer_line(auto).startswith("renderer: raster (auto on cpu), closed mesh: back faces skipped")
+    cfg = EngineConfig(search="exhaustive", refine=False)
+    auto = Engine(box, random_weights, DEVICE, cfg).estimate(image, CAM, TABLE, rp, space)
+    assert auto.info["renderer"] == "raster" and auto.info["median_box_px"] > 1_000
+    assert renderer_line(auto) == (
+        f"renderer: raster (auto on cpu: 12 faces <= 16 x the median candidate box, "
+        f"{auto.info['median_box_px']:,.0f} px), closed mesh: back faces skipped"
+    )
+    # A mesh with more faces per pixel than the rule allows gets the BVH form.
+    monkeypatch.setattr(render, "RASTER_FACES_PER_PIXEL", 12 / auto.info["median_box_px"] / 2)
+    many = Engine(box, random_weights, DEVICE, cfg).estimate(image, CAM, TABLE, rp, space)
+    assert many.info["renderer"] == "bvh" and not many.info["cull_back_faces"]
+    assert renderer_line(many).startswith("renderer: bvh (auto on cpu: 12 faces > ")
     assert (a.info["renderer"], b.info["renderer"]) == ("bvh", "raster") and b.info["cull_back_faces"]
     key = {(c.x_m, c.y_m, c.yaw_rad): c.score for c in a.top_k}
     assert len(key) == len(space) and all(key[(c.x_m, c.y_m, c.yaw_rad)] == c.score for c in b.top_k)
