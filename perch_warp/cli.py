@@ -86,7 +86,7 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
         default="auto",
         choices=["auto", "bvh", "raster"],
         help="how rays find the mesh: bvh (Warp's mesh query per ray) or raster (each triangle tests the rays "
-        "it covers; the same images); auto (default): on the CPU raster unless the mesh has over 16 faces per "
+        "it covers; the same images); auto (default): on the CPU raster unless the mesh has over 3 faces per "
         "pixel of a candidate's box, on a GPU bvh",
     )
     g.add_argument(

@@ -26,10 +26,11 @@ from .mesh import ObjectMesh
 MIN_DEPTH_M = 0.02
 # "auto": on the CPU raster or bvh by RASTER_FACES_PER_PIXEL, on a GPU bvh (the raster form is not measured there).
 RENDERERS = ("auto", "bvh", "raster")
-# The raster form's cost grows with faces x candidates, the BVH form's with rays (pixels): on the CPU
-# the raster form was measured faster up to about 20 faces per pixel of a candidate's box and slower
-# at 80 (docs/performance.md, "Raster form of kernel #1"); auto picks it up to this many.
-RASTER_FACES_PER_PIXEL = 16
+# The raster form's cost grows with faces x candidates, the BVH form's with rays (pixels). On the CPU
+# its render alone was measured faster up to about 20 faces per pixel of a candidate's box, but its
+# silhouette bound (which visits every face for every candidate) makes whole searches slower already
+# at 5 faces per pixel, and 2x faster at 1.5 (docs/performance.md, "Raster form of kernel #1").
+RASTER_FACES_PER_PIXEL = 3
 # The raster form projects every vertex for every candidate: at most this many (candidate, vertex)
 # pairs at once (12 bytes each), so memory stays bounded whatever the batch.
 VERTEX_SLOTS = 1 << 22

@@ -105,8 +105,8 @@ def test_memory_chunks_give_the_same_image(box, monkeypatch):
 
 def test_renderer_option(box):
     # auto on the CPU: raster up to RASTER_FACES_PER_PIXEL faces per pixel of the median box.
-    assert render.RASTER_FACES_PER_PIXEL == 16
-    assert auto_renderer("cpu", 16_384, 1_024) == "raster" and auto_renderer("cpu", 16_385, 1_024) == "bvh"
+    assert render.RASTER_FACES_PER_PIXEL == 3
+    assert auto_renderer("cpu", 3_072, 1_024) == "raster" and auto_renderer("cpu", 3_073, 1_024) == "bvh"
     with pytest.raises(PerchError, match="bvh or raster"):
         MeshRenderer(box, DEVICE, "opengl")
     with pytest.raises(PerchError, match="--renderer"):
@@ -130,7 +130,7 @@ def test_engine_scores_equal_for_both_renderers(box, random_weights, monkeypatch
     auto = Engine(box, random_weights, DEVICE, cfg).estimate(image, CAM, TABLE, rp, space)
     assert auto.info["renderer"] == "raster" and auto.info["median_box_px"] > 1_000
     assert renderer_line(auto) == (
-        f"renderer: raster (auto on cpu: 12 faces <= 16 x the median candidate box, "
+        f"renderer: raster (auto on cpu: 12 faces <= 3 x the median candidate box, "
         f"{auto.info['median_box_px']:,.0f} px), closed mesh: back faces skipped"
     )
     # A mesh with more faces per pixel than the rule allows gets the BVH form.
