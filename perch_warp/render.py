@@ -28,8 +28,9 @@ MIN_DEPTH_M = 0.02
 RENDERERS = ("auto", "bvh", "raster")
 # The raster form's cost grows with faces x candidates, the BVH form's with rays (pixels). On the CPU
 # its render alone was measured faster up to about 20 faces per pixel of a candidate's box, but its
-# silhouette bound (which visits every face for every candidate) makes whole searches slower already
-# at 5 faces per pixel, and 2x faster at 1.5 (docs/performance.md, "Raster form of kernel #1").
+# exact silhouette bound visits every face for every candidate: whole pruned searches were measured
+# 2x faster at 1.5 faces per pixel and about even near 6.5 (docs/performance.md, "Raster form of
+# kernel #1"), so auto picks it only where it clearly wins.
 RASTER_FACES_PER_PIXEL = 3
 # The raster form projects every vertex for every candidate: at most this many (candidate, vertex)
 # pairs at once (12 bytes each), so memory stays bounded whatever the batch.
