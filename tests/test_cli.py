@@ -163,3 +163,12 @@ def test_no_refine_returns_the_grid_pose(scene_dir, caffe_weights, tmp_path, cap
     x0 = round(sc.truth_xy_yaw[0], 2) + 0.01 - 0.03  # the x range's start: grid poses lie on its 1 cm steps
     assert abs((res["pose"]["x_m"] - x0) / 0.01 - round((res["pose"]["x_m"] - x0) / 0.01)) < 1e-6
     assert abs(res["pose"]["yaw_deg"] / 30 - round(res["pose"]["yaw_deg"] / 30)) < 1e-6
+
+
+def test_demo_runs_and_says_what_ran(caffe_weights, tmp_path, capsys):
+    """The README's main job: the demo finds its box and says which search and renderer ran."""
+    assert main(["demo", "--out", str(tmp_path / "demo"), "--device", "cpu"]) == 0
+    out = capsys.readouterr().out
+    assert "error: ADD-S" in out and "search: pruned (auto on cpu)" in out
+    assert "renderer: raster (auto on cpu: 12 faces <= 3 x the median candidate box" in out
+    assert (tmp_path / "demo" / "overlay.png").exists() and (tmp_path / "demo" / "result.json").exists()
