@@ -19,6 +19,14 @@ from .features import NOT_ON_MASK, feature_point, in_box
 from .render import pixel_ray_m
 
 
+@wp.func
+def silhouette_rarity(rarity: wp.array2d(dtype=float), gx: int, gy: int) -> float:
+    """A silhouette point's bound: the photo's rarity at grid cell (gx, gy), 0 beyond the photo (as in kernel #2)."""
+    if not in_box(wp.vec4i(0, 0, rarity.shape[1], rarity.shape[0]), gx, gy):
+        return 0.0
+    return rarity[gy, gx]
+
+
 @wp.kernel(enable_backward=False)
 def rarity_under_silhouette(
     mesh: wp.uint64,
@@ -50,10 +58,7 @@ def rarity_under_silhouette(
     if not wp.mesh_query_ray_anyhit(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6):
         out[i] = NOT_ON_MASK
         return
-    if not in_box(wp.vec4i(0, 0, rarity.shape[1], rarity.shape[0]), gx, gy):  # beyond the photo, as in kernel #2
-        out[i] = 0.0
-        return
-    out[i] = rarity[gy, gx]
+    out[i] = silhouette_rarity(rarity, gx, gy)
 
 
 @wp.kernel(enable_backward=False)
@@ -74,7 +79,4 @@ def rarity_at_hits(
         out[i] = NOT_ON_MASK
         return
     c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
-    if not in_box(wp.vec4i(0, 0, rarity.shape[1], rarity.shape[0]), gx, gy):  # beyond the photo, as in kernel #2
-        out[i] = 0.0
-        return
-    out[i] = rarity[gy, gx]
+    out[i] = silhouette_rarity(rarity, gx, gy)

@@ -42,10 +42,10 @@ def silhouette_points(
     with wp.ScopedDevice(renderer.device):
         out = wp.empty(n_pts, dtype=float)
         offsets = wp.array(pt_off, dtype=wp.int32)
+        box_arr = wp.array(np.asarray(boxes, dtype=np.int32), dtype=wp.vec4i)
+        gbox_arr = wp.array(gboxes, dtype=wp.vec4i)
         if renderer.method == "raster":
             # The raster form's own silhouette: its mask is what kernel #2 will read.
-            box_arr = wp.array(np.asarray(boxes, dtype=np.int32), dtype=wp.vec4i)
-            gbox_arr = wp.array(gboxes, dtype=wp.vec4i)
             hits = renderer.silhouette_hits(
                 camera, R_m2c, t_m2c_m, box_arr, gbox_arr, offsets, n_pts, kernel_size, stride
             )
@@ -62,8 +62,8 @@ def silhouette_points(
             inputs=[
                 renderer.wp_mesh.id,
                 *renderer.ray_inputs(camera, R_m2c, t_m2c_m),  # the renderer's rays
-                wp.array(np.asarray(boxes, dtype=np.int32), dtype=wp.vec4i),
-                wp.array(gboxes, dtype=wp.vec4i),
+                box_arr,
+                gbox_arr,
                 offsets,
                 len(gboxes),
                 kernel_size,
