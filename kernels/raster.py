@@ -131,6 +131,15 @@ def outside(lines: wp.mat33, u: int, v: int) -> bool:
     return wp.min(wp.min(d[0], d[1]), d[2]) < -SLACK_PX and wp.max(wp.max(d[0], d[1]), d[2]) > SLACK_PX
 
 
+@wp.func
+def face_corners(indices: wp.array(dtype=wp.int32), uvz: wp.array2d(dtype=wp.vec3), j: int, f: int):
+    """Face f's vertex indices and its corners as projected for chunk candidate j (project_points)."""
+    i0 = indices[f * 3 + 0]
+    i1 = indices[f * 3 + 1]
+    i2 = indices[f * 3 + 2]
+    return i0, i1, i2, uvz[j, i0], uvz[j, i1], uvz[j, i2]
+
+
 @wp.kernel(enable_backward=False)
 def project_points(
     points: wp.array(dtype=wp.vec3),
@@ -173,12 +182,7 @@ def splat_faces(
     """Thread (j, f): cast the pixel rays of candidate c0 + j's box that face f's projection may cover."""
     j, f = wp.tid()
     c = c0 + j
-    i0 = indices[f * 3 + 0]
-    i1 = indices[f * 3 + 1]
-    i2 = indices[f * 3 + 2]
-    q0 = uvz[j, i0]
-    q1 = uvz[j, i1]
-    q2 = uvz[j, i2]
+    i0, i1, i2, q0, q1, q2 = face_corners(indices, uvz, j, f)
     b = box[c]
     tested, window = face_window(q0, q1, q2, b, min_depth_m, cull_back)
     if tested == 0 or window[0] > window[2] or window[1] > window[3]:
@@ -226,13 +230,8 @@ def splat_points(
     finds a hit at its pixel: the same faces, rays and test; any hit will do."""
     j, f = wp.tid()
     c = c0 + j
-    i0 = indices[f * 3 + 0]
-    i1 = indices[f * 3 + 1]
-    i2 = indices[f * 3 + 2]
+    i0, i1, i2, q0, q1, q2 = face_corners(indices, uvz, j, f)
     b = box[c]
-    q0 = uvz[j, i0]
-    q1 = uvz[j, i1]
-    q2 = uvz[j, i2]
     tested, window = face_window(q0, q1, q2, b, min_depth_m, cull_back)
     if tested == 0:
         return

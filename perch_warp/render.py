@@ -219,8 +219,8 @@ class MeshRenderer:
                 pix_off=wp.array(pix_off, dtype=wp.int32),
                 n=len(boxes),
             )
-            appearance = [self.indices, self.uvs, self.texture, self.colors, self.use_texture]
             if self.method == "bvh":
+                appearance = [self.indices, self.uvs, self.texture, self.colors, self.use_texture]
                 wp.launch(
                     render_boxes,
                     dim=n_pix,
@@ -229,7 +229,7 @@ class MeshRenderer:
                 )
                 return batch
             key = wp.full(n_pix, raster_kernels.NO_HIT, dtype=wp.int64)
-            self._per_face(raster_kernels.splat_faces, rays, [batch.box, batch.pix_off], key)
+            self._per_face(raster_kernels.splat_faces, batch.n, rays, [batch.box, batch.pix_off], key)
             uv = wp.empty(n_pix if self.use_texture else 1, dtype=wp.vec2)
             wp.launch(
                 raster_kernels.locate_hits,
@@ -244,11 +244,11 @@ class MeshRenderer:
                 )
         return batch
 
-    def _per_face(self, kernel, rays: list, per_candidate: list, out: wp.array) -> None:
-        """Launch a raster kernel over (candidate, face), candidates in chunks of at most VERTEX_SLOTS
-        projected vertices: project_points, then `kernel` with the mesh, projections, rays, the
-        arrays `per_candidate`, the chunk's first candidate and the culling flag; it writes `out`."""
-        n_cand = len(rays[4])
+    def _per_face(self, kernel, n_cand: int, rays: list, per_candidate: list, out: wp.array) -> None:
+        """Launch a raster kernel over (candidate, face) for n_cand candidates, in chunks of at most
+        VERTEX_SLOTS projected vertices: project_points, then `kernel` with the mesh, projections,
+        rays (ray_inputs), the arrays `per_candidate`, the chunk's first candidate and the culling
+        flag; it writes `out`."""
         n_points = len(self.points)
         chunk = max(1, VERTEX_SLOTS // n_points)
         uvz = wp.empty((min(chunk, n_cand), n_points), dtype=wp.vec3)
@@ -287,7 +287,8 @@ class MeshRenderer:
         rays = self.ray_inputs(camera, R_m2c, t_m2c_m)
         with wp.ScopedDevice(self.device):
             hits = wp.zeros(n_points, dtype=wp.uint8)
-            self._per_face(raster_kernels.splat_points, rays, [boxes, gboxes, pt_off, kernel_size, stride], hits)
+            per_candidate = [boxes, gboxes, pt_off, kernel_size, stride]
+            self._per_face(raster_kernels.splat_points, len(R_m2c), rays, per_candidate, hits)
         return hits
 
     def render_image(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
