@@ -16,6 +16,12 @@ Weights arrive folded with the network's preprocessing (they act on RGB in [0, 1
 and tap-major: Wt[(dy * ks + dx) * 3 + ch_in] is a C-vector over output channels,
 so the inner loop is one C-wide multiply-add that compilers vectorise.
 
+The convolution has two forms with the same points and the same result up to float
+rounding (perch_warp.score, `conv`): "warp" convolves each point's window in
+`score_points`; "torch" composites each candidate's windows into one crop
+(`composite_crops`), convolves the crops with torch's conv2d, and `score_features`
+takes the features from there.
+
 Kernels are generated per channel count C (64 for torchvision, 96 for Caffe).
 """
 
@@ -51,10 +57,87 @@ def in_box(b: wp.vec4i, x: int, y: int) -> bool:
     return x >= b[0] and x < b[0] + b[2] and y >= b[1] and y < b[1] + b[3]
 
 
+@wp.func
+def on_mask(mask: wp.array(dtype=wp.uint8), roff: int, rb: wp.vec4i, u: int, v: int) -> bool:
+    """Pixel (u, v) is on the candidate's mask (its box rb, packed from roff)."""
+    if in_box(rb, u, v):
+        return mask[roff + (v - rb[1]) * rb[2] + (u - rb[0])] != wp.uint8(0)
+    return False
+
+
+@wp.func
+def composite(
+    image: wp.array2d(dtype=wp.vec3),
+    rgb: wp.array(dtype=wp.vec3),
+    mask: wp.array(dtype=wp.uint8),
+    roff: int,
+    rb: wp.vec4i,
+    x: int,
+    y: int,
+) -> wp.vec3:
+    """The candidate's image at pixel (x, y): rendered where its mask covers it, else the photo."""
+    if in_box(rb, x, y):
+        j = roff + (y - rb[1]) * rb[2] + (x - rb[0])
+        if mask[j] != wp.uint8(0):
+            return rgb[j]
+    return image[y, x]
+
+
+@wp.kernel(enable_backward=False)
+def composite_crops(
+    image: wp.array2d(dtype=wp.vec3),
+    rgb: wp.array(dtype=wp.vec3),
+    mask: wp.array(dtype=wp.uint8),
+    pix_off: wp.array(dtype=wp.int32),
+    box: wp.array(dtype=wp.vec4i),
+    crop: wp.array(dtype=wp.vec4i),
+    crop_off: wp.array(dtype=wp.int32),
+    out: wp.array(dtype=float),
+):
+    """Thread (c, row): that row of candidate c's crop (x0, y0, w, h), the pixels its feature points'
+    windows read, packed flat from 3 crop_off[c] as 3 planes (R, G, B) of h rows. Pixels beyond the
+    photo are 0: only points beyond the photo's feature grid read them, and those are not compared."""
+    c, row = wp.tid()
+    cr = crop[c]
+    if row >= cr[3]:
+        return
+    y = cr[1] + row
+    n = cr[2] * cr[3]
+    base = 3 * crop_off[c] + row * cr[2]
+    photo = wp.vec4i(0, 0, image.shape[1], image.shape[0])
+    roff = pix_off[c]
+    rb = box[c]
+    for col in range(cr[2]):
+        x = cr[0] + col
+        p = wp.vec3(0.0, 0.0, 0.0)
+        if in_box(photo, x, y):
+            p = composite(image, rgb, mask, roff, rb, x, y)
+        out[base + col] = p[0]
+        out[base + n + col] = p[1]
+        out[base + 2 * n + col] = p[2]
+
+
 @functools.cache
 def feature_kernels(C: int):
     """(observed_features, score_points) kernels for C output channels."""
     vecC = wp.types.vector(length=C, dtype=wp.float32)
+
+    @wp.func
+    def rectified(f: vecC, relu: int) -> vecC:
+        out = f
+        if relu != 0:
+            for ch in range(C):
+                out[ch] = wp.max(f[ch], 0.0)
+        return out
+
+    @wp.func
+    def weighted_cosine(f: vecC, g: vecC, g_norm: float, rarity: float) -> float:
+        """cos(f, g) x rarity; 0 where either feature vanishes."""
+        denom = wp.length(f) * g_norm
+        cos = float(0.0)
+        if denom > 1.0e-12:
+            cos = wp.dot(f, g) / denom
+        return cos * rarity
 
     @wp.func
     def conv_at(
@@ -76,17 +159,10 @@ def feature_kernels(C: int):
             y = v + dy - half
             for dx in range(ks):
                 x = u + dx - half
-                p = image[y, x]
-                if in_box(rb, x, y):
-                    j = roff + (y - rb[1]) * rb[2] + (x - rb[0])
-                    if mask[j] != wp.uint8(0):
-                        p = rgb[j]
+                p = composite(image, rgb, mask, roff, rb, x, y)
                 k = (dy * ks + dx) * 3
                 acc = acc + Wt[k] * p[0] + Wt[k + 1] * p[1] + Wt[k + 2] * p[2]
-        if relu != 0:
-            for ch in range(C):
-                acc[ch] = wp.max(acc[ch], 0.0)
-        return acc
+        return rectified(acc, relu)
 
     @wp.kernel(enable_backward=False, module="unique")
     def observed_features(
@@ -130,11 +206,7 @@ def feature_kernels(C: int):
         i = wp.tid()
         c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
         rb = box[c]
-        on_mask = int(0)
-        if in_box(rb, u, v):
-            if mask[pix_off[c] + (v - rb[1]) * rb[2] + (u - rb[0])] != wp.uint8(0):
-                on_mask = 1
-        if on_mask == 0:
+        if not on_mask(mask, pix_off[c], rb, u, v):
             out[i] = NOT_ON_MASK
             return
         if not in_box(wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0]), gx, gy):
@@ -142,10 +214,42 @@ def feature_kernels(C: int):
             out[i] = 0.0
             return
         f = conv_at(image, rgb, mask, pix_off[c], rb, u, v, Wt, bias, ks, relu)
-        denom = wp.length(f) * obs_norm[gy, gx]
-        cos = float(0.0)
-        if denom > 1.0e-12:
-            cos = wp.dot(f, obs_feat[gy, gx]) / denom
-        out[i] = cos * rarity[gy, gx]
+        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], rarity[gy, gx])
 
-    return vecC, observed_features, score_points
+    @wp.kernel(enable_backward=False, module="unique")
+    def score_features(
+        feat: wp.array(dtype=float),
+        mask: wp.array(dtype=wp.uint8),
+        pix_off: wp.array(dtype=wp.int32),
+        box: wp.array(dtype=wp.vec4i),
+        gbox: wp.array(dtype=wp.vec4i),
+        pt_off: wp.array(dtype=wp.int32),
+        n_cand: int,
+        ks: int,
+        stride: int,
+        relu: int,
+        obs_feat: wp.array2d(dtype=vecC),
+        obs_norm: wp.array2d(dtype=float),
+        rarity: wp.array2d(dtype=float),
+        out: wp.array(dtype=float),
+    ):
+        """score_points' values from features convolved elsewhere: candidate c's conv1 output as C
+        planes of its points (row by row in its grid box) from C pt_off[c] in feat; the same points on
+        and off the mask, the same cosine."""
+        i = wp.tid()
+        c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
+        if not on_mask(mask, pix_off[c], box[c], u, v):
+            out[i] = NOT_ON_MASK
+            return
+        if not in_box(wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0]), gx, gy):
+            out[i] = 0.0
+            return
+        n = pt_off[c + 1] - pt_off[c]
+        at = C * pt_off[c] + (i - pt_off[c])
+        f = vecC()
+        for ch in range(C):
+            f[ch] = feat[at + ch * n]
+        f = rectified(f, relu)
+        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], rarity[gy, gx])
+
+    return vecC, observed_features, score_points, score_features

@@ -510,6 +510,7 @@ def format_report(r: dict) -> str:
         f"({r['search_image'][0]}x{r['search_image'][1]} px)",
         f"renderer      {r['settings'].get('renderer', 'bvh')}"
         + (" (back faces skipped: closed mesh)" if r["settings"].get("cull_back_faces") else ""),
+        f"conv1         {r['settings'].get('conv', 'warp')}",
         f"space         {s['space']}",
         f"setup         {r['setup_s']:.2f} s (engine: mesh upload, kernel build; not timed below)",
         f"warm-up run   {s['warmup']['wall_s']:.3f} s (excluded from the figures below)"
@@ -616,6 +617,12 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         choices=["auto", "bvh", "raster"],
         help="kernel #1's form: bvh or raster (same images); auto: by faces per box pixel on the CPU, bvh on a GPU",
     )
+    m.add_argument(
+        "--conv",
+        default="auto",
+        choices=["auto", "warp", "torch"],
+        help="kernel #2's conv1: warp or torch (same values up to rounding); auto: torch on the CPU, warp on a GPU",
+    )
     m.add_argument("--image-scale", type=float, default=1.0, help="search on the photo resized by this factor")
     m.add_argument("--cpu-threads", type=int, default=None, help="CPU device: batches at once (default: one per core)")
     m.add_argument(
@@ -664,6 +671,7 @@ def run(args: argparse.Namespace) -> int:
         cpu_threads=args.cpu_threads,
         refine=args.refine,
         renderer=args.renderer,
+        conv=args.conv,
     )
     w = load_workload(dataset, args.scene, args.image, args.obj, args.clip, args.xy_step, args.yaw_step, args.split)
     weights = load_feature_weights(args.weights)
@@ -701,6 +709,8 @@ def run(args: argparse.Namespace) -> int:
             "renderer": engine.renderer.method,
             "renderer_option": args.renderer,
             "cull_back_faces": engine.renderer.cull_back_faces,
+            "conv": engine.scorer.conv,
+            "conv_option": args.conv,
             "image_scale": args.image_scale,
             "cpu_threads": threads,
             "stride_px": config.stride,

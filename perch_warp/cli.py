@@ -90,6 +90,14 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
         "pixel of a candidate's box, on a GPU bvh",
     )
     g.add_argument(
+        "--conv",
+        default="auto",
+        choices=["auto", "warp", "torch"],
+        help="how candidates' conv1 features are computed: warp (in the scoring kernel, point by point) or "
+        "torch (conv2d on each candidate's composited crop; the same values up to float rounding); "
+        "auto (default): torch on the CPU, warp on a GPU",
+    )
+    g.add_argument(
         "--batch-pixels", type=int, default=None, help="rendered pixels per batch (default: sized to the device)"
     )
     g.add_argument(
@@ -131,6 +139,7 @@ def engine_config_from_args(args: argparse.Namespace):
         batch_pixels=args.batch_pixels,
         search=args.search,
         renderer=args.renderer,
+        conv=args.conv,
         coarse_xy_m=args.coarse_xy,
         coarse_yaw_rad=math.radians(args.coarse_yaw),
         beam=args.beam,
@@ -201,6 +210,14 @@ def renderer_line(result) -> str:
         faces = "closed mesh: back faces skipped" if info["cull_back_faces"] else "open mesh: every face tested"
         return f"renderer: raster{why}, {faces}"
     return f"renderer: bvh{why}"
+
+
+def conv_line(result) -> str:
+    """Which form of kernel #2's convolution ran, and whether auto chose it."""
+    info = result.info
+    how = {"torch": "torch conv2d on each candidate's crop", "warp": "Warp kernel, point by point"}[info["conv"]]
+    why = f" (auto on {result.device})" if info.get("conv_option") == "auto" else ""
+    return f"features: conv1 by {how}{why}"
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:
@@ -319,6 +336,7 @@ def run_estimate(args: argparse.Namespace) -> int:
     print(timing_line(result))
     print(search_summary(result))
     print(renderer_line(result))
+    print(conv_line(result))
     if truth is not None:
         from .pose_error import add, adi
 

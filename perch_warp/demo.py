@@ -354,7 +354,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .cli import build_engine, log, renderer_line, search_summary, timing_line, write_json_atomic
+    from .cli import build_engine, conv_line, log, renderer_line, search_summary, timing_line, write_json_atomic
     from .image import save_png
     from .overlay import TRUTH_COLOR, caption, mask_contour, overlay_rendering
     from .pose_error import adi
@@ -424,6 +424,7 @@ def run(args: argparse.Namespace) -> int:
     print(timing_line(result))
     print(search_summary(result))
     print(renderer_line(result))
+    print(conv_line(result))
     print(f"wrote {out}/overlay.png, {out}/result.json and the scene files; rerun the search with:")
     print(
         f"  python -m perch_warp {out}/rgb/000001.png --mesh {out}/models/obj_000001.obj "

@@ -8,6 +8,7 @@ one score per candidate come back to the host.
 
 from __future__ import annotations
 
+import contextlib
 import functools
 import math
 import os
@@ -29,7 +30,7 @@ from .rarity import rarity as rarity_fn
 from .refine import cell_space
 from .render import MIN_DEPTH_M, RENDERERS, BoxProjector, MeshRenderer, auto_renderer
 from .result import Candidate, Result
-from .score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean_device
+from .score import CONVS, FeatureScorer, auto_conv, grid_boxes, grid_shape, top_alpha_mean_device, torch_threads
 from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera, pose_matrix
 
@@ -73,6 +74,10 @@ class EngineConfig:
     # or "auto": per search on the CPU, raster unless the mesh has many faces per pixel of the
     # candidates' boxes (render.auto_renderer); bvh on a GPU (the raster form is not measured there).
     renderer: str = "auto"
+    # How kernel #2 convolves the candidates' windows (perch_warp.score): "warp", "torch" (conv2d on
+    # each candidate's composited crop; the same values up to float rounding), or "auto": torch on the
+    # CPU (measured faster there), warp on a GPU (torch is not measured there).
+    conv: str = "auto"
 
     def __post_init__(self) -> None:
         if not (0.0 < self.alpha <= 1.0) or not math.isfinite(self.alpha):
@@ -96,6 +101,8 @@ class EngineConfig:
             )
         if self.refine_cells < 1:
             raise PerchError(f"refine_cells (--refine-cells) must be at least 1, got {self.refine_cells}")
+        if self.conv not in CONVS:
+            raise PerchError(f"conv (--conv) must be one of {', '.join(CONVS)}, got {self.conv!r}")
         if self.renderer not in RENDERERS:
             raise PerchError(f"renderer (--renderer) must be one of {', '.join(RENDERERS)}, got {self.renderer!r}")
         if self.cpu_threads is not None and self.cpu_threads < 1:
@@ -153,7 +160,8 @@ class Engine:
         self.renderer = MeshRenderer(
             mesh, self.device, "bvh" if self.config.renderer == "auto" else self.config.renderer
         )
-        self.scorer = FeatureScorer(weights, self.device, self.config.stride, self.config.relu)
+        conv = self.config.conv if self.config.conv != "auto" else auto_conv(self.device)
+        self.scorer = FeatureScorer(weights, self.device, self.config.stride, self.config.relu, conv)
         self.scorer.warm_up()
         # Build now: compile time is not a search stage's.
         for module in ("render", "raster", "boxes", "reduce", "bound"):
@@ -193,29 +201,30 @@ class Engine:
             bar = tqdm(total=0, unit="pose", desc=f"search on {self.device}", leave=False)
         t_start = time.perf_counter()
         try:
-            photo = self._photo(image_rgb, camera, timings)
-            extra: dict = {}
-            search = self.search
-            if search == "exhaustive":
-                x, y, yaw = space.candidates()
-                scores = self._score(photo, camera, table, resting, x, y, yaw, timings, bar)
-                evaluated = len(x)
-            elif search == "pruned":
-                x, y, yaw, scores, extra = self._pruned(photo, camera, table, resting, space, timings, bar)
-                evaluated = extra["scored"]
-            else:
-                x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
-                evaluated = len(x)
-                extra = {"levels": levels}
-            if not np.isfinite(scores).any():
-                raise PerchError(f"the search grid projects outside the image ({space.describe()})")
-            # Stable order: ties go to the earlier candidate, so results are reproducible.
-            order = np.argsort(-scores, kind="stable")[: cfg.top_k]
-            top = [(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i])) for i in order]
-            if cfg.refine:
-                top, extra["refine"] = self._refine(photo, camera, table, resting, space, top, timings)
-            # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _score).
-            wall_s = time.perf_counter() - t_start
+            with self._conv_threads():
+                photo = self._photo(image_rgb, camera, timings)
+                extra: dict = {}
+                search = self.search
+                if search == "exhaustive":
+                    x, y, yaw = space.candidates()
+                    scores = self._score(photo, camera, table, resting, x, y, yaw, timings, bar)
+                    evaluated = len(x)
+                elif search == "pruned":
+                    x, y, yaw, scores, extra = self._pruned(photo, camera, table, resting, space, timings, bar)
+                    evaluated = extra["scored"]
+                else:
+                    x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
+                    evaluated = len(x)
+                    extra = {"levels": levels}
+                if not np.isfinite(scores).any():
+                    raise PerchError(f"the search grid projects outside the image ({space.describe()})")
+                # Stable order: ties go to the earlier candidate, so results are reproducible.
+                order = np.argsort(-scores, kind="stable")[: cfg.top_k]
+                top = [(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i])) for i in order]
+                if cfg.refine:
+                    top, extra["refine"] = self._refine(photo, camera, table, resting, space, top, timings)
+                # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _score).
+                wall_s = time.perf_counter() - t_start
         finally:
             if bar is not None:
                 bar.close()
@@ -240,6 +249,8 @@ class Engine:
                 "search": self.search,
                 "search_option": cfg.search,  # as asked: "auto" or the search itself
                 **renderer_info,
+                "conv": self.scorer.conv,
+                "conv_option": cfg.conv,
                 "image_scale": cfg.image_scale,
                 "search_space": space.describe(),
                 "evaluated": evaluated,  # candidates scored (rendered and compared)
@@ -250,6 +261,11 @@ class Engine:
                 **extra,
             },
         )
+
+    def _conv_threads(self):
+        """One torch thread per batch while torch convolves (the engine's threads run the batches side
+        by side, and a candidate's features must not depend on a thread count); nothing for warp."""
+        return torch_threads(1) if self.scorer.conv == "torch" else contextlib.nullcontext()
 
     def _refine(self, photo, camera, table, resting, space: SearchSpace, top: list, timings: dict):
         """The best grid pose refined below the grid: the best of its cell at the fine resolution
@@ -303,8 +319,9 @@ class Engine:
         x, y, yaw = space.candidates()
         R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
         bounds, scores = np.full(len(x), -np.inf), np.full(len(x), -np.inf)
-        self._bound_some(photo, camera, R, tr, boxes, gboxes, live, bounds, timings)
-        self._score_some(photo, camera, R, tr, boxes, gboxes, live, scores, timings)
+        with self._conv_threads():
+            self._bound_some(photo, camera, R, tr, boxes, gboxes, live, bounds, timings)
+            self._score_some(photo, camera, R, tr, boxes, gboxes, live, scores, timings)
         return {"x_m": x, "y_m": y, "yaw_rad": yaw, "bound": bounds, "score": scores}
 
     def _pick_renderer(self, camera: Camera, table: Table, resting: RestingPose, space: SearchSpace) -> dict:

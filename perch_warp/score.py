@@ -2,13 +2,15 @@
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
 import warp as wp
 
+from .errors import PerchError
 from .features import FeatureWeights
-from .kernels.features import NOT_ON_MASK, feature_kernels
+from .kernels.features import NOT_ON_MASK, composite_crops, feature_kernels
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
 from .render import RenderedBatch, flat_offsets
 
@@ -18,21 +20,58 @@ def grid_shape(width: int, height: int, kernel_size: int, stride: int) -> tuple[
     return (height - kernel_size) // stride + 1, (width - kernel_size) // stride + 1
 
 
+# How kernel #2 convolves a candidate's windows: "warp" (in the kernel, point by point), "torch"
+# (torch's conv2d on each candidate's composited crop), or "auto": torch on the CPU, where it is
+# measured faster (docs/performance.md, "Conv1 through torch"); warp on a GPU, where it is not measured.
+CONVS = ("auto", "warp", "torch")
+
+
+def auto_conv(device: str) -> str:
+    """What conv "auto" runs on this device."""
+    return "torch" if wp.get_device(device).is_cpu else "warp"
+
+
+@contextlib.contextmanager
+def torch_threads(n: int):
+    """torch's intra-op threads set to n for the block, then restored. The engine scores batches on its
+    own threads; each batch's conv2d calls then run on that batch's thread alone."""
+    import torch
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(n)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(before)
+
+
 class FeatureScorer:
     """Conv1 weights on a device, and the kernels specialised for their channel count."""
 
-    def __init__(self, weights: FeatureWeights, device: str, stride: int, relu: bool = False):
+    def __init__(self, weights: FeatureWeights, device: str, stride: int, relu: bool = False, conv: str = "warp"):
+        if conv not in ("warp", "torch"):
+            raise PerchError(f"conv must be warp or torch, got {conv!r}")
         self.device = device
+        self.conv = conv
         self.ks = weights.kernel_size
         self.stride = int(stride)
         self.relu = int(bool(relu))
-        self.vecC, self.k_observed, self.k_score = feature_kernels(weights.channels)
+        self.vecC, self.k_observed, self.k_score, self.k_score_features = feature_kernels(weights.channels)
         Wt, b = weights.folded()
         with wp.ScopedDevice(device):
             self.Wt = wp.array(Wt, dtype=self.vecC)
             self.bias = self.vecC(*b.tolist())
             self._dummy_rgb = wp.zeros(1, dtype=wp.vec3)
             self._dummy_mask = wp.zeros(1, dtype=wp.uint8)
+        if conv == "torch":
+            import torch
+
+            C, ks = weights.channels, self.ks
+            # The folded weights back in OIHW: Wt's rows are (dy, dx, ch_in).
+            oihw = Wt.reshape(ks, ks, 3, C).transpose(3, 2, 0, 1)
+            tdev = wp.device_to_torch(device)
+            self._t_weight = torch.from_numpy(np.ascontiguousarray(oihw)).to(tdev)
+            self._t_bias = torch.from_numpy(b).to(tdev)
 
     def warm_up(self) -> None:
         """Build both kernels now (a tiny launch each) so that compile time is not billed to a search stage."""
@@ -85,6 +124,16 @@ class FeatureScorer:
         with wp.ScopedDevice(self.device):
             out = wp.empty(n_pts, dtype=float)
             offsets = wp.array(pt_off, dtype=wp.int32)
+            if self.conv == "torch":
+                feat = self._torch_features(image, batch, gboxes, pt_off)
+                wp.launch(
+                    self.k_score_features,
+                    dim=n_pts,
+                    inputs=[feat, batch.mask, batch.pix_off, batch.box, wp.array(gboxes, dtype=wp.vec4i), offsets]
+                    + [batch.n, self.ks, self.stride, self.relu, obs_feat, obs_norm, rarity],
+                    outputs=[out],
+                )
+                return out, offsets
             wp.launch(
                 self.k_score,
                 dim=n_pts,
@@ -109,6 +158,45 @@ class FeatureScorer:
                 outputs=[out],
             )
         return out, offsets
+
+    def _torch_features(self, image: wp.array, batch: RenderedBatch, gboxes: np.ndarray, pt_off: np.ndarray):
+        """conv1 at every feature point of the batch, for `score_features`: candidate c's C planes of
+        its points from C pt_off[c], a flat device array. Each candidate's windows are composited into
+        one crop (composite_crops) that torch's conv2d convolves, one candidate per call, so that a
+        candidate's features never depend on the batch it is in."""
+        import torch
+
+        crops = crop_boxes(gboxes, self.ks, self.stride)
+        crop_off = flat_offsets(crops)
+        C = int(self._t_weight.shape[0])
+        feat = wp.empty(C * int(pt_off[-1]), dtype=float)
+        flat = wp.empty(3 * int(crop_off[-1]), dtype=float)
+        wp.launch(
+            composite_crops,
+            dim=(len(crops), int(crops[:, 3].max(initial=0))),
+            inputs=[image, batch.rgb, batch.mask, batch.pix_off, batch.box]
+            + [wp.array(crops, dtype=wp.vec4i), wp.array(crop_off, dtype=wp.int32)],
+            outputs=[flat],
+        )
+        f_t, flat_t = wp.to_torch(feat), wp.to_torch(flat)
+        for c in np.flatnonzero(crops[:, 2] * crops[:, 3] > 0):
+            w, h = int(crops[c, 2]), int(crops[c, 3])
+            x = flat_t[3 * int(crop_off[c]) : 3 * int(crop_off[c + 1])].view(1, 3, h, w)
+            y = torch.nn.functional.conv2d(x, self._t_weight, self._t_bias, stride=self.stride)
+            f_t[C * int(pt_off[c]) : C * int(pt_off[c + 1])].copy_(y.reshape(-1))
+        return feat
+
+
+def crop_boxes(gboxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:
+    """Pixel boxes (x0, y0, w, h) that the windows of each grid box's (gx0, gy0, gw, gh) feature points
+    cover: an unpadded stride-s convolution of the crop gives exactly those points, row by row."""
+    g = np.asarray(gboxes, dtype=np.int64).reshape(-1, 4)
+    live = (g[:, 2] > 0) & (g[:, 3] > 0)
+    w = stride * (g[:, 2] - 1) + kernel_size
+    h = stride * (g[:, 3] - 1) + kernel_size
+    out = np.stack([stride * g[:, 0], stride * g[:, 1], w, h], -1)
+    out[~live] = 0
+    return out.astype(np.int32)
 
 
 def grid_boxes(boxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:

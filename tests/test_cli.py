@@ -166,9 +166,10 @@ def test_no_refine_returns_the_grid_pose(scene_dir, caffe_weights, tmp_path, cap
 
 
 def test_demo_runs_and_says_what_ran(caffe_weights, tmp_path, capsys):
-    """The README's main job: the demo finds its box and says which search and renderer ran."""
+    """The README's main job: the demo finds its box and says which search, renderer and conv ran."""
     assert main(["demo", "--out", str(tmp_path / "demo"), "--device", "cpu"]) == 0
     out = capsys.readouterr().out
     assert "error: ADD-S" in out and "search: pruned (auto on cpu)" in out
     assert "renderer: raster (auto on cpu: 12 faces <= 3 x the median candidate box" in out
+    assert "features: conv1 by torch conv2d on each candidate's crop (auto on cpu)" in out
     assert (tmp_path / "demo" / "overlay.png").exists() and (tmp_path / "demo" / "result.json").exists()

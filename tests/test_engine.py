@@ -125,3 +125,29 @@ def test_half_scale_search_finds_the_pose_too(scene, caffe_weights):
     # The pose is still expressed for the full-size camera (metres, model -> camera).
     R, t = model_to_camera(scene.table, scene.resting, r.x_m, r.y_m, r.yaw_rad)
     assert np.allclose(r.T_m2c[:3, 3], t[0])
+
+
+def test_both_conv_forms_give_the_same_scores(scene, caffe_weights):
+    """Kernel #2's conv1 in the Warp kernel or through torch's conv2d: every candidate's score equal up
+    to float rounding, and the torch threads as they were once the search is over."""
+    import torch
+
+    from perch_warp.errors import PerchError
+
+    gx, gy, _ = scene.truth_xy_yaw
+    space = _space_around(gx, gy, half=0.02, yaw_step_deg=45.0)
+    args = (scene.image, scene.camera, scene.table, scene.resting, space)
+    threads = torch.get_num_threads()
+    runs = {}
+    for conv in ("warp", "torch"):
+        config = EngineConfig(conv=conv, top_k=len(space), search="exhaustive", refine=False, batch_pixels=20000)
+        runs[conv] = Engine(scene.mesh, caffe_weights, DEVICE, config).estimate(*args)
+        assert (runs[conv].info["conv"], runs[conv].info["conv_option"]) == (conv, conv)
+    assert torch.get_num_threads() == threads
+    by_pose = {conv: {(k.x_m, k.y_m, k.yaw_rad): k.score for k in r.top_k} for conv, r in runs.items()}
+    assert by_pose["warp"].keys() == by_pose["torch"].keys() and len(by_pose["warp"]) > 20
+    diff = [abs(by_pose["warp"][p] - by_pose["torch"][p]) for p in by_pose["warp"] if np.isfinite(by_pose["warp"][p])]
+    assert max(diff) < 1e-5
+    assert runs["warp"].best.score == pytest.approx(runs["torch"].best.score, abs=1e-5)
+    with pytest.raises(PerchError, match="--conv"):
+        EngineConfig(conv="cudnn")

@@ -84,7 +84,8 @@ def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, str
     return np.array(out)
 
 
-def test_candidate_scores_equal_numpy_reference(random_weights):
+@pytest.mark.parametrize("conv", ["warp", "torch"])
+def test_candidate_scores_equal_numpy_reference(random_weights, conv):
     rng = np.random.default_rng(3)
     H, W_, stride = 40, 52, 3
     img = rng.integers(0, 256, (H, W_, 3), dtype=np.uint8)
@@ -98,7 +99,7 @@ def test_candidate_scores_equal_numpy_reference(random_weights):
     gboxes = grid_boxes(boxes, 11, stride)
     rarity = rng.random((rows, cols)).astype(np.float32)
 
-    sc = FeatureScorer(random_weights, DEVICE, stride)
+    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv)
     image = sc.image_to_device(img)
     obs = sc.observed_features(image)
     norms = np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32)
