@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import math
+import threading
 
 import numpy as np
 import warp as wp
@@ -63,6 +64,7 @@ class FeatureScorer:
             self.bias = self.vecC(*b.tolist())
             self._dummy_rgb = wp.zeros(1, dtype=wp.vec3)
             self._dummy_mask = wp.zeros(1, dtype=wp.uint8)
+        self._buffers = threading.local()
         if conv == "torch":
             import torch
 
@@ -169,8 +171,8 @@ class FeatureScorer:
         crops = crop_boxes(gboxes, self.ks, self.stride)
         crop_off = flat_offsets(crops)
         C = int(self._t_weight.shape[0])
-        feat = wp.empty(C * int(pt_off[-1]), dtype=float)
-        flat = wp.empty(3 * int(crop_off[-1]), dtype=float)
+        feat = self._scratch("feat", C * int(pt_off[-1]))
+        flat = self._scratch("crop", 3 * int(crop_off[-1]))
         wp.launch(
             composite_crops,
             dim=(len(crops), int(crops[:, 3].max(initial=0))),
@@ -179,12 +181,25 @@ class FeatureScorer:
             outputs=[flat],
         )
         f_t, flat_t = wp.to_torch(feat), wp.to_torch(flat)
+        on_gpu = not wp.get_device(self.device).is_cpu
+        if on_gpu:  # torch runs on its own stream: the crops must be written before it reads them
+            wp.synchronize_device(self.device)
         for c in np.flatnonzero(crops[:, 2] * crops[:, 3] > 0):
             w, h = int(crops[c, 2]), int(crops[c, 3])
             x = flat_t[3 * int(crop_off[c]) : 3 * int(crop_off[c + 1])].view(1, 3, h, w)
             y = torch.nn.functional.conv2d(x, self._t_weight, self._t_bias, stride=self.stride)
             f_t[C * int(pt_off[c]) : C * int(pt_off[c + 1])].copy_(y.reshape(-1))
+        if on_gpu:  # and the features written before Warp's stream reads them
+            torch.cuda.synchronize(f_t.device)
         return feat
+
+    def _scratch(self, name: str, n: int) -> wp.array:
+        """A float array of n items, this thread's own and reused across its batches: fresh host memory
+        costs a page fault per 4 KiB on first touch, which here is most of what the copies cost."""
+        bufs = self._buffers.__dict__
+        if name not in bufs or bufs[name].shape[0] < n:
+            bufs[name] = wp.empty(max(n, 1), dtype=float, device=self.device)
+        return bufs[name][:n]
 
 
 def crop_boxes(gboxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:

@@ -1,0 +1,116 @@
+"""Kernel #2's conv1 in its two forms on the same rendered boxes: the Warp kernel (point by point)
+against torch's conv2d on each candidate's composited crop (zero-copy through `wp.to_torch`).
+
+    python tools/conv_compare.py [--device cpu|cuda:0] [--poses 300] [--seed 0] [--repeat 3] [--out conv.json]
+
+Poses drawn at random from the reference workload's grid (ycbv test scene 2 image 1, potted
+meat can, visible table clipped to 1 m, 1 cm / 0.1 rad, the real photo), rendered once by the
+device's default form of kernel #1; then `FeatureScorer.score_points` runs on that batch with
+each conv form, each timed after a warm-up call, best of --repeat. Reports the feature points,
+how many are on the mask, the time per on-mask point and the largest difference of the two
+forms' values (cos x rarity). On the CPU torch runs on one thread, as the engine runs it (one
+thread per batch). `--conv auto` picks from these figures.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import warp as wp
+from perch_warp.kernels.features import NOT_ON_MASK
+
+from perch_warp.bench import add_frame_arguments, default_dataset, device_name, git_commit, load_workload
+from perch_warp.engine import Engine, EngineConfig
+from perch_warp.features import load_feature_weights
+from perch_warp.score import grid_boxes, torch_threads
+from perch_warp.table import model_to_camera
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_frame_arguments(ap)
+    ap.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
+    ap.add_argument("--poses", type=int, default=300, help="random poses of the reference grid (default 300)")
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--repeat", type=int, default=3, help="timed calls per form, best kept (default 3)")
+    ap.add_argument("--weights", default="caffe")
+    ap.add_argument("--out", type=Path, default=None, help="write the figures here as JSON")
+    args = ap.parse_args(argv)
+    dataset = args.dataset or default_dataset()
+    if dataset is None:
+        print("conv_compare: shared/data/ycbv not found (set PERCH_WARP_SHARED)", file=sys.stderr)
+        return 1
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    w = load_workload(dataset, args.scene, args.image, args.obj, 1.0, 0.01, 0.1)
+    weights = load_feature_weights(args.weights)
+    engines = {conv: Engine(w.mesh, weights, args.device, EngineConfig(conv=conv)) for conv in ("warp", "torch")}
+    e = engines["warp"]
+    photo = e._photo(w.image, w.camera, {})
+    x, y, yaw = w.space.candidates()
+    pick = np.random.default_rng(args.seed).choice(len(x), min(args.poses, len(x)), replace=False)
+    R, t = model_to_camera(w.table, w.resting, x[pick], y[pick], yaw[pick])
+    boxes = e.boxes(w.camera, R, t)
+    keep = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
+    R, t, boxes = R[keep], t[keep], boxes[keep]
+    gboxes = grid_boxes(boxes, weights.kernel_size, e.config.stride)
+    renderer = "raster" if wp.get_device(args.device).is_cpu else "bvh"
+    e.renderer.use(renderer)
+    batch = e.renderer.render(w.camera, R, t, boxes)
+    times, values = {}, {}
+    for conv, eng in engines.items():
+        scorer = eng.scorer
+
+        def call(scorer=scorer):
+            out, _ = scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.rarity)
+            wp.synchronize_device(args.device)
+            return out
+
+        with torch_threads(1) if conv == "torch" else contextlib.nullcontext():
+            values[conv] = call().numpy()  # warm-up: kernel builds, torch's first call
+            best = float("inf")
+            for _ in range(args.repeat):
+                t0 = time.perf_counter()
+                call()
+                best = min(best, time.perf_counter() - t0)
+        times[conv] = best
+    on = values["warp"] > NOT_ON_MASK / 2
+    same_mask = bool(np.array_equal(on, values["torch"] > NOT_ON_MASK / 2))
+    diff = float(np.abs(values["warp"][on] - values["torch"][on]).max()) if on.any() else 0.0
+    n_on = int(on.sum())
+    report = {
+        "device": args.device,
+        "device_name": device_name(args.device),
+        "commit": git_commit(),
+        "workload": w.label,
+        "renderer": renderer,
+        "candidates": len(boxes),
+        "feature_points": len(on),
+        "on_mask_points": n_on,
+        "seconds": times,
+        "us_per_on_mask_point": {k: 1e6 * v / max(n_on, 1) for k, v in times.items()},
+        "torch_over_warp": times["torch"] / times["warp"],
+        "same_points_on_mask": same_mask,
+        "max_abs_difference": diff,
+    }
+    print(f"device   {report['device_name']}\ncommit   {report['commit']}")
+    print(f"batch    {len(boxes)} candidates of {w.label} ({renderer} render)")
+    print(f"points   {len(on):,} feature points, {n_on:,} on the mask")
+    for conv in ("warp", "torch"):
+        print(f"{conv:<8} {times[conv]:.4f} s  {report['us_per_on_mask_point'][conv]:.3f} us per on-mask point")
+    print(f"torch / warp {report['torch_over_warp']:.2f}; same points on the mask: {same_mask}")
+    print(f"largest |difference| of the values: {diff:.2e}")
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(report, indent=1) + "\n")
+    return 0 if same_mask else 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())
