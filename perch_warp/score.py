@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-import threading
+import queue
 
 import numpy as np
 import warp as wp
@@ -64,7 +64,7 @@ class FeatureScorer:
             self.bias = self.vecC(*b.tolist())
             self._dummy_rgb = wp.zeros(1, dtype=wp.vec3)
             self._dummy_mask = wp.zeros(1, dtype=wp.uint8)
-        self._buffers = threading.local()
+        self._buffers: queue.SimpleQueue = queue.SimpleQueue()  # free buffer sets of the torch form
         if conv == "torch":
             import torch
 
@@ -127,14 +127,18 @@ class FeatureScorer:
             out = wp.empty(n_pts, dtype=float)
             offsets = wp.array(pt_off, dtype=wp.int32)
             if self.conv == "torch":
-                feat = self._torch_features(image, batch, gboxes, pt_off)
-                wp.launch(
-                    self.k_score_features,
-                    dim=n_pts,
-                    inputs=[feat, batch.mask, batch.pix_off, batch.box, wp.array(gboxes, dtype=wp.vec4i), offsets]
-                    + [batch.n, self.ks, self.stride, self.relu, obs_feat, obs_norm, rarity],
-                    outputs=[out],
-                )
+                bufs = self._take_buffers()
+                try:
+                    feat = self._torch_features(image, batch, gboxes, pt_off, bufs)
+                    wp.launch(
+                        self.k_score_features,
+                        dim=n_pts,
+                        inputs=[feat, batch.mask, batch.pix_off, batch.box, wp.array(gboxes, dtype=wp.vec4i)]
+                        + [offsets, batch.n, self.ks, self.stride, self.relu, obs_feat, obs_norm, rarity],
+                        outputs=[out],
+                    )
+                finally:
+                    self._buffers.put(bufs)  # the same stream reads it before a later batch writes it
                 return out, offsets
             wp.launch(
                 self.k_score,
@@ -161,7 +165,9 @@ class FeatureScorer:
             )
         return out, offsets
 
-    def _torch_features(self, image: wp.array, batch: RenderedBatch, gboxes: np.ndarray, pt_off: np.ndarray):
+    def _torch_features(
+        self, image: wp.array, batch: RenderedBatch, gboxes: np.ndarray, pt_off: np.ndarray, bufs: dict
+    ) -> wp.array:
         """conv1 at every feature point of the batch, for `score_features`: candidate c's C planes of
         its points from C pt_off[c], a flat device array. Each candidate's windows are composited into
         one crop (composite_crops) that torch's conv2d convolves, one candidate per call, so that a
@@ -171,8 +177,8 @@ class FeatureScorer:
         crops = crop_boxes(gboxes, self.ks, self.stride)
         crop_off = flat_offsets(crops)
         C = int(self._t_weight.shape[0])
-        feat = self._scratch("feat", C * int(pt_off[-1]))
-        flat = self._scratch("crop", 3 * int(crop_off[-1]))
+        feat = _grown(bufs, "feat", C * int(pt_off[-1]), self.device)
+        flat = _grown(bufs, "crop", 3 * int(crop_off[-1]), self.device)
         wp.launch(
             composite_crops,
             dim=(len(crops), int(crops[:, 3].max(initial=0))),
@@ -193,13 +199,21 @@ class FeatureScorer:
             torch.cuda.synchronize(f_t.device)
         return feat
 
-    def _scratch(self, name: str, n: int) -> wp.array:
-        """A float array of n items, this thread's own and reused across its batches: fresh host memory
-        costs a page fault per 4 KiB on first touch, which here is most of what the copies cost."""
-        bufs = self._buffers.__dict__
-        if name not in bufs or bufs[name].shape[0] < n:
-            bufs[name] = wp.empty(max(n, 1), dtype=float, device=self.device)
-        return bufs[name][:n]
+    def _take_buffers(self) -> dict:
+        """A set of the torch form's buffers no batch in flight holds, reused across batches and
+        searches: fresh host memory faults on first touch (most of what the copies cost), and
+        allocating per batch fragments the heap (the host peak grew by about 1 GiB over a search)."""
+        try:
+            return self._buffers.get_nowait()
+        except queue.Empty:
+            return {}
+
+
+def _grown(bufs: dict, name: str, n: int, device: str) -> wp.array:
+    """bufs[name][:n], a float array reallocated when it holds fewer than n items."""
+    if name not in bufs or bufs[name].shape[0] < n:
+        bufs[name] = wp.empty(max(n, 1), dtype=float, device=device)
+    return bufs[name][:n]
 
 
 def crop_boxes(gboxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:

@@ -27,6 +27,7 @@ from perch_warp.kernels.features import NOT_ON_MASK
 
 from perch_warp.bench import add_frame_arguments, default_dataset, device_name, git_commit, load_workload
 from perch_warp.engine import Engine, EngineConfig
+from perch_warp.errors import PerchError
 from perch_warp.features import load_feature_weights
 from perch_warp.score import grid_boxes, torch_threads
 from perch_warp.table import model_to_camera
@@ -49,8 +50,12 @@ def main(argv: list[str] | None = None) -> int:
     wp.config.log_level = wp.LOG_WARNING
     wp.init()
     w = load_workload(dataset, args.scene, args.image, args.obj, 1.0, 0.01, 0.1)
-    weights = load_feature_weights(args.weights)
-    engines = {conv: Engine(w.mesh, weights, args.device, EngineConfig(conv=conv)) for conv in ("warp", "torch")}
+    try:
+        weights = load_feature_weights(args.weights)
+        engines = {conv: Engine(w.mesh, weights, args.device, EngineConfig(conv=conv)) for conv in ("warp", "torch")}
+    except PerchError as e:
+        print(f"conv_compare: error: {e}", file=sys.stderr)
+        return 1
     e = engines["warp"]
     photo = e._photo(w.image, w.camera, {})
     x, y, yaw = w.space.candidates()

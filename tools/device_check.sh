@@ -1,8 +1,8 @@
 #!/usr/bin/env bash
 # The GPU checks of one device session, prepared so that they fit one `run` call:
 # the kernel tests on the GPU (against the same NumPy references as on the CPU), the
-# reference workload with each search and with the raster form of kernel #1, and the BVH
-# build options.
+# reference workload with each search and with the raster form of kernel #1, the two forms
+# of kernel #2's convolution, and the BVH build options.
 #
 #   PERCH_WARP_COMMIT=<sha of the code> OUT=<folder> tools/device_check.sh [cuda:0]
 #
@@ -45,5 +45,7 @@ done
 step bench_exhaustive_raster python3 -m perch_warp bench --device "$DEV" --search exhaustive --renderer raster \
   --repeat 1 --no-peer --out "$OUT/bench_exhaustive_raster"
 step render_cost python3 tools/render_cost.py --device "$DEV" --poses 1000
+# Kernel #2's conv1: the Warp kernel against torch's conv2d (cuDNN) on the same boxes (auto keeps warp on GPUs).
+step conv_compare python3 tools/conv_compare.py --device "$DEV" --poses 1000 --out "$OUT/conv_compare.json"
 step bvh_options python3 tools/bvh_options.py --device "$DEV" --poses 3000 --leaf-sizes 1 2 4 8
 grep -h -E "^(commit|search|renderer|total|refine|candidates|throughput|refinement|pose found)" "$OUT"/bench_*/bench.txt 2>/dev/null

@@ -1,0 +1,22 @@
+"""tools/conv_compare.py: both conv forms on the same real boxes, the same points and values."""
+
+import importlib.util
+import json
+from pathlib import Path
+
+from _device import DEVICE
+
+TOOL = Path(__file__).resolve().parents[1] / "tools" / "conv_compare.py"
+
+
+def test_conv_forms_agree_on_real_boxes(shared, caffe_weights, tmp_path):
+    spec = importlib.util.spec_from_file_location("conv_compare", TOOL)
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    out = tmp_path / "conv.json"
+    args = ["--dataset", str(shared / "data" / "ycbv"), "--device", DEVICE, "--poses", "6", "--repeat", "1"]
+    assert tool.main([*args, "--out", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert r["same_points_on_mask"] and r["candidates"] > 0 and 0 < r["on_mask_points"] < r["feature_points"]
+    assert r["max_abs_difference"] < 1e-5
+    assert set(r["seconds"]) == {"warp", "torch"}
