@@ -201,8 +201,7 @@ class FeatureScorer:
 
     def _take_buffers(self) -> dict:
         """A set of the torch form's buffers no batch in flight holds, reused across batches and
-        searches: fresh host memory faults on first touch (most of what the copies cost), and
-        allocating per batch fragments the heap (the host peak grew by about 1 GiB over a search)."""
+        searches: fresh host memory faults on first touch, which was most of what the copies cost."""
         try:
             return self._buffers.get_nowait()
         except queue.Empty:
