@@ -119,7 +119,7 @@ def composite_crops(
 
 @functools.cache
 def feature_kernels(C: int):
-    """(observed_features, score_points) kernels for C output channels."""
+    """(vecC, observed_features, score_points, score_features) for C output channels."""
     vecC = wp.types.vector(length=C, dtype=wp.float32)
 
     @wp.func
