@@ -83,6 +83,33 @@ def composite(
     return image[y, x]
 
 
+@wp.func
+def point_to_compare(
+    mask: wp.array(dtype=wp.uint8),
+    pix_off: wp.array(dtype=wp.int32),
+    box: wp.array(dtype=wp.vec4i),
+    gbox: wp.array(dtype=wp.vec4i),
+    pt_off: wp.array(dtype=wp.int32),
+    n_cand: int,
+    ks: int,
+    stride: int,
+    grid_rows: int,
+    grid_cols: int,
+    i: int,
+):
+    """Flat feature point i (feature_point): whether it is compared with the photo, the value it
+    scores if not, its candidate c, grid cell (gx, gy) and pixel (u, v). Not compared: off the
+    candidate's mask (NOT_ON_MASK), or on it but beyond the photo's feature grid (0: part of the
+    object, but nothing to compare). Both forms of kernel #2 decide by this, so they score the
+    same points."""
+    c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
+    if not on_mask(mask, pix_off[c], box[c], u, v):
+        return False, float(NOT_ON_MASK), c, gx, gy, u, v
+    if not in_box(wp.vec4i(0, 0, grid_cols, grid_rows), gx, gy):
+        return False, float(0.0), c, gx, gy, u, v
+    return True, float(0.0), c, gx, gy, u, v
+
+
 @wp.kernel(enable_backward=False)
 def composite_crops(
     image: wp.array2d(dtype=wp.vec3),
@@ -204,16 +231,14 @@ def feature_kernels(C: int):
         out: wp.array(dtype=float),
     ):
         i = wp.tid()
-        c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
-        rb = box[c]
-        if not on_mask(mask, pix_off[c], rb, u, v):
-            out[i] = NOT_ON_MASK
+        rows, cols = obs_feat.shape[0], obs_feat.shape[1]
+        compared, value, c, gx, gy, u, v = point_to_compare(
+            mask, pix_off, box, gbox, pt_off, n_cand, ks, stride, rows, cols, i
+        )
+        if not compared:
+            out[i] = value
             return
-        if not in_box(wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0]), gx, gy):
-            # Silhouette beyond the photo's feature grid: part of the object, but nothing to compare.
-            out[i] = 0.0
-            return
-        f = conv_at(image, rgb, mask, pix_off[c], rb, u, v, Wt, bias, ks, relu)
+        f = conv_at(image, rgb, mask, pix_off[c], box[c], u, v, Wt, bias, ks, relu)
         out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], rarity[gy, gx])
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -237,12 +262,12 @@ def feature_kernels(C: int):
         planes of its points (row by row in its grid box) from C pt_off[c] in feat; the same points on
         and off the mask, the same cosine."""
         i = wp.tid()
-        c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
-        if not on_mask(mask, pix_off[c], box[c], u, v):
-            out[i] = NOT_ON_MASK
-            return
-        if not in_box(wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0]), gx, gy):
-            out[i] = 0.0
+        rows, cols = obs_feat.shape[0], obs_feat.shape[1]
+        compared, value, c, gx, gy, u, v = point_to_compare(
+            mask, pix_off, box, gbox, pt_off, n_cand, ks, stride, rows, cols, i
+        )
+        if not compared:
+            out[i] = value
             return
         n = pt_off[c + 1] - pt_off[c]
         at = C * pt_off[c] + (i - pt_off[c])

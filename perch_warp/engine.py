@@ -8,7 +8,6 @@ one score per candidate come back to the host.
 
 from __future__ import annotations
 
-import contextlib
 import functools
 import math
 import os
@@ -30,7 +29,7 @@ from .rarity import rarity as rarity_fn
 from .refine import cell_space
 from .render import MIN_DEPTH_M, RENDERERS, BoxProjector, MeshRenderer, auto_renderer
 from .result import Candidate, Result
-from .score import CONVS, FeatureScorer, auto_conv, grid_boxes, grid_shape, top_alpha_mean_device, torch_threads
+from .score import CONVS, FeatureScorer, auto_conv, grid_boxes, grid_shape, top_alpha_mean_device
 from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera, pose_matrix
 
@@ -201,30 +200,29 @@ class Engine:
             bar = tqdm(total=0, unit="pose", desc=f"search on {self.device}", leave=False)
         t_start = time.perf_counter()
         try:
-            with self._conv_threads():
-                photo = self._photo(image_rgb, camera, timings)
-                extra: dict = {}
-                search = self.search
-                if search == "exhaustive":
-                    x, y, yaw = space.candidates()
-                    scores = self._score(photo, camera, table, resting, x, y, yaw, timings, bar)
-                    evaluated = len(x)
-                elif search == "pruned":
-                    x, y, yaw, scores, extra = self._pruned(photo, camera, table, resting, space, timings, bar)
-                    evaluated = extra["scored"]
-                else:
-                    x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
-                    evaluated = len(x)
-                    extra = {"levels": levels}
-                if not np.isfinite(scores).any():
-                    raise PerchError(f"the search grid projects outside the image ({space.describe()})")
-                # Stable order: ties go to the earlier candidate, so results are reproducible.
-                order = np.argsort(-scores, kind="stable")[: cfg.top_k]
-                top = [(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i])) for i in order]
-                if cfg.refine:
-                    top, extra["refine"] = self._refine(photo, camera, table, resting, space, top, timings)
-                # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _score).
-                wall_s = time.perf_counter() - t_start
+            photo = self._photo(image_rgb, camera, timings)
+            extra: dict = {}
+            search = self.search
+            if search == "exhaustive":
+                x, y, yaw = space.candidates()
+                scores = self._score(photo, camera, table, resting, x, y, yaw, timings, bar)
+                evaluated = len(x)
+            elif search == "pruned":
+                x, y, yaw, scores, extra = self._pruned(photo, camera, table, resting, space, timings, bar)
+                evaluated = extra["scored"]
+            else:
+                x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
+                evaluated = len(x)
+                extra = {"levels": levels}
+            if not np.isfinite(scores).any():
+                raise PerchError(f"the search grid projects outside the image ({space.describe()})")
+            # Stable order: ties go to the earlier candidate, so results are reproducible.
+            order = np.argsort(-scores, kind="stable")[: cfg.top_k]
+            top = [(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i])) for i in order]
+            if cfg.refine:
+                top, extra["refine"] = self._refine(photo, camera, table, resting, space, top, timings)
+            # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _score).
+            wall_s = time.perf_counter() - t_start
         finally:
             if bar is not None:
                 bar.close()
@@ -261,11 +259,6 @@ class Engine:
                 **extra,
             },
         )
-
-    def _conv_threads(self):
-        """One torch thread per batch while torch convolves (the engine's threads run the batches side
-        by side, and a candidate's features must not depend on a thread count); nothing for warp."""
-        return torch_threads(1) if self.scorer.conv == "torch" else contextlib.nullcontext()
 
     def _refine(self, photo, camera, table, resting, space: SearchSpace, top: list, timings: dict):
         """The best grid pose refined below the grid: the best of its cell at the fine resolution
@@ -319,9 +312,8 @@ class Engine:
         x, y, yaw = space.candidates()
         R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
         bounds, scores = np.full(len(x), -np.inf), np.full(len(x), -np.inf)
-        with self._conv_threads():
-            self._bound_some(photo, camera, R, tr, boxes, gboxes, live, bounds, timings)
-            self._score_some(photo, camera, R, tr, boxes, gboxes, live, scores, timings)
+        self._bound_some(photo, camera, R, tr, boxes, gboxes, live, bounds, timings)
+        self._score_some(photo, camera, R, tr, boxes, gboxes, live, scores, timings)
         return {"x_m": x, "y_m": y, "yaw_rad": yaw, "bound": bounds, "score": scores}
 
     def _pick_renderer(self, camera: Camera, table: Table, resting: RestingPose, space: SearchSpace) -> dict:
@@ -445,13 +437,18 @@ class Engine:
                 bar.update(len(b))
 
         if threads <= 1:
-            for b in batches:
-                done(b, *work(b))
+            with self.scorer.conv_threads():
+                for b in batches:
+                    done(b, *work(b))
             return
         # Each batch on a pool thread, its arrays its own (the renderer and scorer allocate per call
         # and keep no per-call state). A stage's time is then the sum over threads of its per-batch
         # times, i.e. CPU time, which can exceed the wall time; "total" stays wall time.
-        with _default_device(self.device), ThreadPoolExecutor(threads, thread_name_prefix="perch-score") as pool:
+        with (
+            self.scorer.conv_threads(),
+            _default_device(self.device),
+            ThreadPoolExecutor(threads, thread_name_prefix="perch-score") as pool,
+        ):
             futures = {pool.submit(work, b): b for b in batches}
             try:
                 for f in as_completed(futures):

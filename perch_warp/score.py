@@ -75,6 +75,12 @@ class FeatureScorer:
             self._t_weight = torch.from_numpy(np.ascontiguousarray(oihw)).to(tdev)
             self._t_bias = torch.from_numpy(b).to(tdev)
 
+    def conv_threads(self):
+        """While batches are scored: one torch thread per calling thread for the torch form (the engine
+        already runs one batch per core, and a candidate's features must not depend on a thread count);
+        nothing for the Warp form."""
+        return torch_threads(1) if self.conv == "torch" else contextlib.nullcontext()
+
     def warm_up(self) -> None:
         """Build both kernels now (a tiny launch each) so that compile time is not billed to a search stage."""
         ks = self.ks

@@ -15,7 +15,6 @@ thread per batch). `--conv auto` picks from these figures.
 from __future__ import annotations
 
 import argparse
-import contextlib
 import json
 import sys
 import time
@@ -29,7 +28,7 @@ from perch_warp.bench import add_frame_arguments, default_dataset, device_name, 
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
 from perch_warp.features import load_feature_weights
-from perch_warp.score import grid_boxes, torch_threads
+from perch_warp.score import grid_boxes
 from perch_warp.table import model_to_camera
 
 
@@ -77,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
             wp.synchronize_device(args.device)
             return out
 
-        with torch_threads(1) if conv == "torch" else contextlib.nullcontext():
+        with scorer.conv_threads():
             values[conv] = call().numpy()  # warm-up: kernel builds, torch's first call
             best = float("inf")
             for _ in range(args.repeat):
