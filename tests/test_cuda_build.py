@@ -1,0 +1,74 @@
+"""Every Warp kernel the engine launches builds for a CUDA GPU, checked on a machine without one.
+
+Warp's wheel carries NVRTC, so its ahead-of-time compiler turns each kernel module's CUDA
+source into PTX for a given architecture with no GPU or driver present. The tests run the
+kernels on the CPU device only; this is what catches CUDA-only build errors (native
+snippets, 64-bit atomics, types the CPU compiler accepts and NVRTC does not) before a GPU
+session spends its time on them. It says nothing about results on a GPU: those are
+`tools/device_check.sh`'s job.
+"""
+
+from __future__ import annotations
+
+import importlib
+
+import pytest
+
+wp = pytest.importorskip("warp")
+
+from perch_warp.kernels.features import feature_kernels  # noqa: E402
+
+# sm_90: the H100/H200 machines the project's GPU figures come from.
+ARCH = 90
+
+KERNEL_MODULES = [
+    "bound",
+    "boxes",
+    "features",
+    "photo",
+    "raster",
+    "raycast_bench",
+    "reduce",
+    "render",
+]
+
+
+def _nvrtc_archs() -> list[int]:
+    wp.init()
+    try:
+        return list(wp.get_cuda_supported_archs())
+    except Exception:  # a Warp build without CUDA support
+        return []
+
+
+pytestmark = pytest.mark.skipif(
+    ARCH not in _nvrtc_archs(), reason=f"this Warp build cannot compile CUDA for sm_{ARCH} (no NVRTC)"
+)
+
+
+def _ptx_entries(path) -> set[str]:
+    text = path.read_bytes().decode("utf-8", errors="replace")
+    return {line.split()[2].split("(")[0] for line in text.splitlines() if line.startswith(".visible .entry ")}
+
+
+def _kernel_names(mod) -> set[str]:
+    return {v.key for v in vars(mod).values() if isinstance(v, wp.Kernel)}
+
+
+@pytest.mark.parametrize("name", KERNEL_MODULES)
+def test_kernel_module_compiles_to_ptx(name, tmp_path):
+    mod = importlib.import_module(f"perch_warp.kernels.{name}")
+    expected = _kernel_names(mod)
+    assert expected, f"no kernels registered in {mod.__name__}"
+    (ptx,) = wp.compile_aot_module(mod, arch=ARCH, module_dir=tmp_path, use_ptx=True)
+    entries = _ptx_entries(ptx)
+    # One forward entry per kernel: nothing was skipped as an unresolved generic.
+    for key in expected:
+        assert any(e.startswith(f"{key}_") and e.endswith("_cuda_kernel_forward") for e in entries), (key, entries)
+
+
+def test_feature_kernels_compile_to_ptx(tmp_path):
+    # Built per channel count, each in a module of its own ("unique"): compiled one by one.
+    for kernel in feature_kernels(64)[1:]:
+        (ptx,) = wp.compile_aot_module(kernel.module, arch=ARCH, module_dir=tmp_path, use_ptx=True)
+        assert any(e.endswith("_cuda_kernel_forward") for e in _ptx_entries(ptx)), kernel.key
