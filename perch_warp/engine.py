@@ -437,7 +437,7 @@ class Engine:
                 bar.update(len(b))
 
         if threads <= 1:
-            with self.scorer.conv_threads():
+            with self.scorer.conv_settings():
                 for b in batches:
                     done(b, *work(b))
             return
@@ -445,7 +445,7 @@ class Engine:
         # and keep no per-call state). A stage's time is then the sum over threads of its per-batch
         # times, i.e. CPU time, which can exceed the wall time; "total" stays wall time.
         with (
-            self.scorer.conv_threads(),
+            self.scorer.conv_settings(),
             _default_device(self.device),
             ThreadPoolExecutor(threads, thread_name_prefix="perch-score") as pool,
         ):

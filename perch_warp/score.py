@@ -46,6 +46,21 @@ def torch_threads(n: int):
         torch.set_num_threads(before)
 
 
+def cudnn_full_precision():
+    """cuDNN convolutions in IEEE fp32, deterministic, for the block, then restored. By default torch
+    lets cuDNN convolve fp32 in TF32 (10-bit mantissa) on Ampere and later GPUs, which would put the
+    candidates' features about 1e-3 off the photo's (kernel #2's Warp form, full fp32) and off the
+    CPU's; and it may pick an algorithm whose sums depend on the run."""
+    import inspect
+
+    import torch
+
+    flags = {"enabled": True, "benchmark": False, "deterministic": True, "allow_tf32": False}
+    if "fp32_precision" in inspect.signature(torch.backends.cudnn.flags).parameters:  # torch >= 2.9
+        flags["fp32_precision"] = "ieee"
+    return torch.backends.cudnn.flags(**flags)
+
+
 class FeatureScorer:
     """Conv1 weights on a device, and the kernels specialised for their channel count."""
 
@@ -75,11 +90,17 @@ class FeatureScorer:
             self._t_weight = torch.from_numpy(np.ascontiguousarray(oihw)).to(tdev)
             self._t_bias = torch.from_numpy(b).to(tdev)
 
-    def conv_threads(self):
-        """While batches are scored: one torch thread per calling thread for the torch form (the engine
-        already runs one batch per core, and a candidate's features must not depend on a thread count);
-        nothing for the Warp form."""
-        return torch_threads(1) if self.conv == "torch" else contextlib.nullcontext()
+    def conv_settings(self) -> contextlib.AbstractContextManager:
+        """torch's settings while batches are scored, for the torch form: one thread per calling
+        thread (the engine already runs one batch per core, and a candidate's features must not depend
+        on a thread count) and, on a GPU, cuDNN in full fp32 (cudnn_full_precision). Global state, so
+        entered once around all of a search's batches, not per batch; nothing for the Warp form."""
+        stack = contextlib.ExitStack()
+        if self.conv == "torch":
+            stack.enter_context(torch_threads(1))
+            if not wp.get_device(self.device).is_cpu:
+                stack.enter_context(cudnn_full_precision())
+        return stack
 
     def warm_up(self) -> None:
         """Build both kernels now (a tiny launch each) so that compile time is not billed to a search stage."""

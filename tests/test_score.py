@@ -78,3 +78,21 @@ def test_device_top_alpha_mean_of_no_candidates():
     values = wp.zeros(0, dtype=wp.float32, device=DEVICE)
     scores, n = top_alpha_mean_device(values, wp.array(np.zeros(1, np.int32), device=DEVICE), 0.5)
     assert scores.shape == (0,) and n.shape == (0,)
+
+
+def test_cudnn_full_precision_turns_tf32_off_for_the_block_only():
+    """The torch form's settings on a GPU (they are flags, so they can be checked without one): no
+    TF32 and deterministic cuDNN inside, torch's own defaults back afterwards."""
+    torch = pytest.importorskip("torch")
+    from perch_warp.score import cudnn_full_precision
+
+    cudnn = torch.backends.cudnn
+    before = (cudnn.allow_tf32, cudnn.deterministic, cudnn.benchmark)
+    precision = getattr(getattr(cudnn, "conv", None), "fp32_precision", None)
+    with cudnn_full_precision():
+        assert cudnn.allow_tf32 is False and cudnn.deterministic is True and cudnn.benchmark is False
+        if precision is not None:  # torch >= 2.9 reads the new setting for convolutions
+            assert cudnn.conv.fp32_precision == "ieee"
+    assert (cudnn.allow_tf32, cudnn.deterministic, cudnn.benchmark) == before
+    if precision is not None:
+        assert cudnn.conv.fp32_precision == precision

@@ -76,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
             wp.synchronize_device(args.device)
             return out
 
-        with scorer.conv_threads():
+        with scorer.conv_settings():
             values[conv] = call().numpy()  # warm-up: kernel builds, torch's first call
             best = float("inf")
             for _ in range(args.repeat):
