@@ -16,7 +16,7 @@ has its own silhouette: any-hit BVH rays for the bvh form, the raster form's own
 import warp as wp
 
 from .features import NOT_ON_MASK, feature_point, in_box
-from .render import pixel_ray_m
+from .render import PixelRays, pixel_ray_m
 
 
 @wp.func
@@ -30,12 +30,7 @@ def silhouette_rarity(rarity: wp.array2d(dtype=float), gx: int, gy: int) -> floa
 @wp.kernel(enable_backward=False)
 def rarity_under_silhouette(
     mesh: wp.uint64,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-    origin_m: wp.array(dtype=wp.vec3),
+    rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
     gbox: wp.array(dtype=wp.vec4i),
     pt_off: wp.array(dtype=wp.int32),
@@ -55,7 +50,7 @@ def rarity_under_silhouette(
     # Any hit, not the closest: Warp's any-hit query runs the same ray-triangle test over the same
     # range [0, max_t) as kernel #1's closest-hit query, so it hits exactly when that one does, and
     # stops at the first triangle (about half the traversal, tools/render_cost.py).
-    if not wp.mesh_query_ray_anyhit(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6):
+    if not wp.mesh_query_ray_anyhit(mesh, rays.origin_m[c], pixel_ray_m(rays, c, u, v), 1.0e6):
         out[i] = NOT_ON_MASK
         return
     out[i] = silhouette_rarity(rarity, gx, gy)

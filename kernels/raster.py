@@ -12,7 +12,7 @@ colour each pixel from its face as kernel #1 does. Same layout as kernel #1: can
 
 import warp as wp
 
-from .render import box_pixel, pixel_ray_m, sample_texture, surface_uv, vertex_color
+from .render import PixelRays, box_pixel, pixel_ray_m, sample_texture, surface_uv, vertex_color
 
 # Key of a pixel no triangle covers (above any hit's key).
 NO_HIT = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
@@ -143,12 +143,7 @@ def face_corners(indices: wp.array(dtype=wp.int32), uvz: wp.array2d(dtype=wp.vec
 @wp.kernel(enable_backward=False)
 def project_points(
     points: wp.array(dtype=wp.vec3),
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-    origin_m: wp.array(dtype=wp.vec3),
+    rays: PixelRays,
     c0: int,
     min_depth_m: float,
     out_uvz: wp.array2d(dtype=wp.vec3),
@@ -156,9 +151,9 @@ def project_points(
     """Thread (j, k): vertex k of candidate c0 + j in pixels (u, v) and its depth z (camera frame, m)."""
     j, k = wp.tid()
     c = c0 + j
-    p = wp.transpose(rot_c2m[c]) * (points[k] - origin_m[c])
+    p = wp.transpose(rays.rot_c2m[c]) * (points[k] - rays.origin_m[c])
     z = wp.max(p[2], min_depth_m)
-    out_uvz[j, k] = wp.vec3(fx * p[0] / z + cx, fy * p[1] / z + cy, p[2])
+    out_uvz[j, k] = wp.vec3(rays.fx * p[0] / z + rays.cx, rays.fy * p[1] / z + rays.cy, p[2])
 
 
 @wp.kernel(enable_backward=False)
@@ -166,12 +161,7 @@ def splat_faces(
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     uvz: wp.array2d(dtype=wp.vec3),
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-    origin_m: wp.array(dtype=wp.vec3),
+    rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
     pix_off: wp.array(dtype=wp.int32),
     c0: int,
@@ -191,15 +181,14 @@ def splat_faces(
     a = points[i0]
     bb = points[i1]
     cc = points[i2]
-    o = origin_m[c]
-    R = rot_c2m[c]
+    o = rays.origin_m[c]
     for v in range(window[1], window[3] + 1):
         row = pix_off[c] + (v - b[1]) * b[2] - b[0]
         for u in range(window[0], window[2] + 1):
             if use_lines != 0:
                 if outside(lines, u, v):
                     continue
-            h = ray_triangle(o, pixel_ray_m(u, v, fx, fy, cx, cy, R), a, bb, cc)
+            h = ray_triangle(o, pixel_ray_m(rays, c, u, v), a, bb, cc)
             if h[0] > 0.0:
                 keep_nearest(out_key, row + u, hit_key(h[1], f))
 
@@ -209,12 +198,7 @@ def splat_points(
     points: wp.array(dtype=wp.vec3),
     indices: wp.array(dtype=wp.int32),
     uvz: wp.array2d(dtype=wp.vec3),
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-    origin_m: wp.array(dtype=wp.vec3),
+    rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
     gbox: wp.array(dtype=wp.vec4i),
     pt_off: wp.array(dtype=wp.int32),
@@ -248,8 +232,7 @@ def splat_points(
     a = points[i0]
     bb = points[i1]
     cc = points[i2]
-    o = origin_m[c]
-    R = rot_c2m[c]
+    o = rays.origin_m[c]
     for gy in range(gy0, gy1 + 1):
         v = half + stride * gy
         row = pt_off[c] + (gy - g[1]) * g[2] - g[0]
@@ -260,7 +243,7 @@ def splat_points(
             if use_lines != 0:
                 if outside(lines, u, v):
                     continue
-            if ray_triangle(o, pixel_ray_m(u, v, fx, fy, cx, cy, R), a, bb, cc)[0] > 0.0:
+            if ray_triangle(o, pixel_ray_m(rays, c, u, v), a, bb, cc)[0] > 0.0:
                 out_hit[row + gx] = wp.uint8(1)
 
 
@@ -271,12 +254,7 @@ def locate_hits(
     uvs: wp.array(dtype=wp.vec2),
     colors: wp.array(dtype=wp.vec3),
     use_texture: int,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-    origin_m: wp.array(dtype=wp.vec3),
+    rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
     pix_off: wp.array(dtype=wp.int32),
     n_cand: int,
@@ -296,8 +274,8 @@ def locate_hits(
     f = int(k & wp.int64(0x7FFFFFFF))
     c, u, v = box_pixel(pix_off, box, n_cand, i)
     h = ray_triangle(
-        origin_m[c],
-        pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]),
+        rays.origin_m[c],
+        pixel_ray_m(rays, c, u, v),
         points[indices[f * 3 + 0]],
         points[indices[f * 3 + 1]],
         points[indices[f * 3 + 2]],

@@ -8,7 +8,7 @@ triangle tests alone (no texture lookup, no packing by boxes).
 
 import warp as wp
 
-from .render import pixel_ray_m
+from .render import PixelRays, pixel_ray_m
 
 # Written where a ray meets nothing.
 MISS = -1.0
@@ -17,17 +17,12 @@ MISS = -1.0
 @wp.kernel(enable_backward=False)
 def cast_depth(
     mesh: wp.uint64,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-    origin_m: wp.array(dtype=wp.vec3),
+    rays: PixelRays,
     out_t: wp.array3d(dtype=float),
 ):
     """out_t[p, v, u] = ray parameter of the first hit (the camera-frame depth, m, since the direction's z is 1)."""
     p, v, u = wp.tid()
-    q = wp.mesh_query_ray(mesh, origin_m[p], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[p]), 1.0e6)
+    q = wp.mesh_query_ray(mesh, rays.origin_m[p], pixel_ray_m(rays, p, u, v), 1.0e6)
     if q.result:
         out_t[p, v, u] = q.t
     else:

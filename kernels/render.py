@@ -84,11 +84,25 @@ def surface_color(
     return vertex_color(indices, colors, face, bu, bv)
 
 
+@wp.struct
+class PixelRays:
+    """A batch's pixel rays in the model frame: the pinhole intrinsics (pixels) and, per candidate c,
+    the camera-to-model rotation rot_c2m[c] and the camera centre origin_m[c] (metres), where
+    candidate c's rays start. Every kernel that casts candidates' pixel rays takes this one struct
+    and pixel_ray_m, so all of them cast the same rays (the bound's silhouette is the render's)."""
+
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    rot_c2m: wp.array(dtype=wp.mat33)
+    origin_m: wp.array(dtype=wp.vec3)
+
+
 @wp.func
-def pixel_ray_m(u: int, v: int, fx: float, fy: float, cx: float, cy: float, rot_c2m: wp.mat33) -> wp.vec3:
-    """Direction (model frame) of the ray through pixel (u, v). One function for every kernel
-    that casts pixel rays, so the silhouette bound (kernels/bound.py) hits exactly what the render hits."""
-    return rot_c2m * wp.vec3((float(u) - cx) / fx, (float(v) - cy) / fy, 1.0)
+def pixel_ray_m(rays: PixelRays, c: int, u: int, v: int) -> wp.vec3:
+    """Direction (model frame) of candidate c's ray through pixel (u, v), from rays.origin_m[c]."""
+    return rays.rot_c2m[c] * wp.vec3((float(u) - rays.cx) / rays.fx, (float(v) - rays.cy) / rays.fy, 1.0)
 
 
 @wp.kernel(enable_backward=False)
@@ -99,12 +113,7 @@ def render_boxes(
     texture: wp.array2d(dtype=wp.vec3),
     colors: wp.array(dtype=wp.vec3),
     use_texture: int,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-    origin_m: wp.array(dtype=wp.vec3),
+    rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
     pix_off: wp.array(dtype=wp.int32),
     n_cand: int,
@@ -113,7 +122,7 @@ def render_boxes(
 ):
     i = wp.tid()
     c, u, v = box_pixel(pix_off, box, n_cand, i)
-    q = wp.mesh_query_ray(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), 1.0e6)
+    q = wp.mesh_query_ray(mesh, rays.origin_m[c], pixel_ray_m(rays, c, u, v), 1.0e6)
     if q.result:
         out_rgb[i] = surface_color(indices, uvs, texture, colors, use_texture, q.face, q.u, q.v)
         out_mask[i] = wp.uint8(1)

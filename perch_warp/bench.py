@@ -37,7 +37,7 @@ from .camera import Camera
 from .errors import PerchError
 from .kernels.raycast_bench import MISS  # the hit parameter written where a ray meets nothing
 from .mesh import ObjectMesh
-from .render import camera_in_model  # the rays of kernel #1
+from .render import camera_in_model, pixel_rays  # the rays of kernel #1
 from .search_space import SearchSpace
 from .table import RestingPose, Table
 
@@ -347,18 +347,16 @@ def warp_raycast(
 
     from .kernels.raycast_bench import cast_depth
 
-    R_c2m, origin_m = camera_in_model(np.asarray(R_m2c, np.float64), np.asarray(t_m2c_m, np.float64))
-    P = len(R_c2m)
+    rays = pixel_rays(camera, np.asarray(R_m2c, np.float64), np.asarray(t_m2c_m, np.float64), device)
+    P = len(R_m2c)
     with wp.ScopedDevice(device):
-        rot = wp.array(R_c2m, dtype=wp.mat33)
-        org = wp.array(origin_m, dtype=wp.vec3)
         out = wp.empty((P, camera.height, camera.width), dtype=float)
 
     def launch() -> None:
         wp.launch(
             cast_depth,
             dim=(P, camera.height, camera.width),
-            inputs=[wp_mesh.id, camera.fx, camera.fy, camera.cx, camera.cy, rot, org],
+            inputs=[wp_mesh.id, rays],
             outputs=[out],
             device=device,
         )

@@ -61,7 +61,7 @@ def silhouette_points(
             dim=n_pts,
             inputs=[
                 renderer.wp_mesh.id,
-                *renderer.ray_inputs(camera, R_m2c, t_m2c_m),  # the renderer's rays
+                renderer.pixel_rays(camera, R_m2c, t_m2c_m),  # the renderer's rays
                 box_arr,
                 gbox_arr,
                 offsets,

@@ -19,7 +19,7 @@ from .camera import Camera
 from .errors import PerchError
 from .kernels import boxes as box_kernels
 from .kernels import raster as raster_kernels
-from .kernels.render import render_boxes
+from .kernels.render import PixelRays, render_boxes
 from .mesh import ObjectMesh
 
 # Candidates closer than this to the camera plane cannot be rendered sensibly.
@@ -151,6 +151,17 @@ def camera_in_model(R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray,
     return R_c2m, origin_m
 
 
+def pixel_rays(camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, device: str) -> PixelRays:
+    """The pixel rays of poses R_m2c (N, 3, 3), t_m2c_m (N, 3) metres (model to camera) through
+    `camera`'s pixels, in the model frame, as the kernels take them (kernels/render.py: PixelRays)."""
+    R_c2m, origin_m = camera_in_model(R_m2c, t_m2c_m)
+    rays = PixelRays()
+    rays.fx, rays.fy, rays.cx, rays.cy = (float(camera.fx), float(camera.fy), float(camera.cx), float(camera.cy))
+    rays.rot_c2m = wp.array(R_c2m, dtype=wp.mat33, device=device)
+    rays.origin_m = wp.array(origin_m, dtype=wp.vec3, device=device)
+    return rays
+
+
 class MeshRenderer:
     """A mesh and its appearance uploaded once to a Warp device (model frame, metres), rendered
     by `method`: "bvh" (kernels/render.py) or "raster" (kernels/raster.py), the same images."""
@@ -190,27 +201,17 @@ class MeshRenderer:
         """Only the raster form skips faces, and only where that cannot change a pixel."""
         return self.method == "raster" and self.closed_surface
 
-    def ray_inputs(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> list:
-        """The kernel inputs that define the candidates' pixel rays (kernels/render.py: pixel_ray_m):
-        fx, fy, cx, cy (pixels), camera-to-model rotations and camera centres in the model frame
-        (metres), on this device. Every kernel that casts the candidates' pixel rays takes them in
-        this order, so all of them cast the same rays."""
-        R_c2m, origin_m = camera_in_model(R_m2c, t_m2c_m)
-        return [
-            camera.fx,
-            camera.fy,
-            camera.cx,
-            camera.cy,
-            wp.array(R_c2m, dtype=wp.mat33, device=self.device),
-            wp.array(origin_m, dtype=wp.vec3, device=self.device),
-        ]
+    def pixel_rays(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> PixelRays:
+        """The candidates' pixel rays on this device, for every kernel that casts them (model-to-camera
+        poses R (B, 3, 3), t (B, 3) metres)."""
+        return pixel_rays(camera, R_m2c, t_m2c_m, self.device)
 
     def render(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, boxes: np.ndarray) -> RenderedBatch:
         """Ray-cast each candidate's box (boxes (B, 4) with w, h > 0); returns device arrays."""
         boxes = np.asarray(boxes, dtype=np.int32)
         pix_off = flat_offsets(boxes)
         n_pix = int(pix_off[-1])
-        rays = self.ray_inputs(camera, R_m2c, t_m2c_m)
+        rays = self.pixel_rays(camera, R_m2c, t_m2c_m)
         with wp.ScopedDevice(self.device):
             batch = RenderedBatch(
                 rgb=wp.empty(n_pix, dtype=wp.vec3),
@@ -224,7 +225,7 @@ class MeshRenderer:
                 wp.launch(
                     render_boxes,
                     dim=n_pix,
-                    inputs=[self.wp_mesh.id, *appearance, *rays, batch.box, batch.pix_off, batch.n],
+                    inputs=[self.wp_mesh.id, *appearance, rays, batch.box, batch.pix_off, batch.n],
                     outputs=[batch.rgb, batch.mask],
                 )
                 return batch
@@ -234,7 +235,7 @@ class MeshRenderer:
             wp.launch(
                 raster_kernels.locate_hits,
                 dim=n_pix,
-                inputs=[self.points, self.indices, self.uvs, self.colors, self.use_texture, *rays]
+                inputs=[self.points, self.indices, self.uvs, self.colors, self.use_texture, rays]
                 + [batch.box, batch.pix_off, batch.n, key],
                 outputs=[uv, batch.rgb, batch.mask],
             )
@@ -244,10 +245,10 @@ class MeshRenderer:
                 )
         return batch
 
-    def _per_face(self, kernel, n_cand: int, rays: list, per_candidate: list, out: wp.array) -> None:
+    def _per_face(self, kernel, n_cand: int, rays: PixelRays, per_candidate: list, out: wp.array) -> None:
         """Launch a raster kernel over (candidate, face) for n_cand candidates, in chunks of at most
         VERTEX_SLOTS projected vertices: project_points, then `kernel` with the mesh, projections,
-        rays (ray_inputs), the arrays `per_candidate`, the chunk's first candidate and the culling
+        rays (pixel_rays), the arrays `per_candidate`, the chunk's first candidate and the culling
         flag; it writes `out`."""
         n_points = len(self.points)
         chunk = max(1, VERTEX_SLOTS // n_points)
@@ -257,13 +258,13 @@ class MeshRenderer:
             wp.launch(
                 raster_kernels.project_points,
                 dim=(m, n_points),
-                inputs=[self.points, *rays, c0, MIN_DEPTH_M],
+                inputs=[self.points, rays, c0, MIN_DEPTH_M],
                 outputs=[uvz],
             )
             wp.launch(
                 kernel,
                 dim=(m, len(self.indices) // 3),
-                inputs=[self.points, self.indices, uvz, *rays, *per_candidate, c0, MIN_DEPTH_M]
+                inputs=[self.points, self.indices, uvz, rays, *per_candidate, c0, MIN_DEPTH_M]
                 + [int(self.cull_back_faces)],
                 outputs=[out],
             )
@@ -284,7 +285,7 @@ class MeshRenderer:
         hits the mesh: exactly the points this renderer's mask covers."""
         if self.method != "raster":
             raise PerchError("silhouette_hits needs the raster form (the bvh form's bound casts any-hit rays)")
-        rays = self.ray_inputs(camera, R_m2c, t_m2c_m)
+        rays = self.pixel_rays(camera, R_m2c, t_m2c_m)
         with wp.ScopedDevice(self.device):
             hits = wp.zeros(n_points, dtype=wp.uint8)
             per_candidate = [boxes, gboxes, pt_off, kernel_size, stride]

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import warp as wp
-from perch_warp.kernels.render import box_pixel, pixel_ray_m
+from perch_warp.kernels.render import PixelRays, box_pixel, pixel_ray_m
 
 from perch_warp.bench import add_frame_arguments, default_dataset, git_commit, load_workload, search_camera
 from perch_warp.features import caffe_weights_path
@@ -41,12 +41,7 @@ from perch_warp.table import model_to_camera
 @wp.kernel(enable_backward=False)
 def closest_hit_only(
     mesh: wp.uint64,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-    origin_m: wp.array(dtype=wp.vec3),
+    rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
     pix_off: wp.array(dtype=wp.int32),
     n_cand: int,
@@ -55,19 +50,14 @@ def closest_hit_only(
 ):
     i = wp.tid()
     c, u, v = box_pixel(pix_off, box, n_cand, i)  # kernel #1's pixels and rays
-    q = wp.mesh_query_ray(mesh, origin_m[c], pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c]), max_t[i])
+    q = wp.mesh_query_ray(mesh, rays.origin_m[c], pixel_ray_m(rays, c, u, v), max_t[i])
     out_t[i] = wp.where(q.result, q.t, -1.0)
 
 
 @wp.kernel(enable_backward=False)
 def any_hit(
     mesh: wp.uint64,
-    fx: float,
-    fy: float,
-    cx: float,
-    cy: float,
-    rot_c2m: wp.array(dtype=wp.mat33),
-    origin_m: wp.array(dtype=wp.vec3),
+    rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
     pix_off: wp.array(dtype=wp.int32),
     n_cand: int,
@@ -75,8 +65,8 @@ def any_hit(
 ):
     i = wp.tid()
     c, u, v = box_pixel(pix_off, box, n_cand, i)
-    d = pixel_ray_m(u, v, fx, fy, cx, cy, rot_c2m[c])
-    out_mask[i] = wp.where(wp.mesh_query_ray_anyhit(mesh, origin_m[c], d, 1.0e6), wp.uint8(1), wp.uint8(0))
+    d = pixel_ray_m(rays, c, u, v)
+    out_mask[i] = wp.where(wp.mesh_query_ray_anyhit(mesh, rays.origin_m[c], d, 1.0e6), wp.uint8(1), wp.uint8(0))
 
 
 def window_fraction(mask: np.ndarray, boxes: np.ndarray, pix_off: np.ndarray, ks: int = 11, stride: int = 4) -> float:
@@ -158,7 +148,7 @@ def main(argv: list[str] | None = None) -> int:
     with wp.ScopedDevice(args.device):
         common = [
             renderer.wp_mesh.id,
-            *renderer.ray_inputs(cam, R, t),
+            renderer.pixel_rays(cam, R, t),
             wp.array(boxes, dtype=wp.vec4i),
             wp.array(pix_off, dtype=wp.int32),
             len(boxes),
