@@ -11,6 +11,9 @@ session spends its time on them. It says nothing about results on a GPU: those a
 from __future__ import annotations
 
 import importlib
+import importlib.util
+import json
+from pathlib import Path
 
 import pytest
 
@@ -18,6 +21,7 @@ wp = pytest.importorskip("warp")
 
 from perch_warp.kernels.features import feature_kernels  # noqa: E402
 
+TOOLS = Path(__file__).resolve().parents[1] / "tools"
 # sm_90: the H100/H200 machines the project's GPU figures come from.
 ARCH = 90
 
@@ -72,3 +76,34 @@ def test_feature_kernels_compile_to_ptx(tmp_path):
     for kernel in feature_kernels(64)[1:]:
         (ptx,) = wp.compile_aot_module(kernel.module, arch=ARCH, module_dir=tmp_path, use_ptx=True)
         assert any(e.endswith("_cuda_kernel_forward") for e in _ptx_entries(ptx)), kernel.key
+
+
+def _resources_tool():
+    spec = importlib.util.spec_from_file_location("cuda_resources", TOOLS / "cuda_resources.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    return tool
+
+
+def test_occupancy_formula_reproduces_nsight_compute_on_the_h100():
+    """Nsight Compute on an H100 (docs/performance.md) measured render_boxes at 71 registers per
+    thread, theoretical occupancy 37.5 %, blocks of 256: the formula must give the same."""
+    tool = _resources_tool()
+    assert tool.theoretical_occupancy(71, 256, 90) == (0.375, 3)
+    assert tool.theoretical_occupancy(64, 256, 90) == (0.5, 4)  # 64 x 256 x 4 = the SM's 65,536 registers
+    assert tool.theoretical_occupancy(16, 256, 90) == (1.0, 8)  # then threads per SM limit
+    assert tool.theoretical_occupancy(16, 32, 90) == (0.5, 32)  # and blocks per SM
+
+
+def test_cubin_registers_are_read_for_every_kernel(tmp_path):
+    tool = _resources_tool()
+    mod = importlib.import_module("perch_warp.kernels.render")
+    (cubin,) = wp.compile_aot_module(mod, arch=ARCH, module_dir=tmp_path, use_ptx=False)
+    res = tool.cubin_resources(cubin)
+    (entry,) = [k for k in res if k.startswith("render_boxes_")]
+    # Nsight Compute read 71 on the H100 (Warp 1.19, CUDA 13); another NVRTC may allocate otherwise.
+    assert 16 <= res[entry]["registers"] <= 255
+    assert res[entry]["frame_bytes"] > 0  # the BVH traversal's stack lives in local memory
+    assert tool.main(["--arch", "90", "--out", str(tmp_path / "r.json")]) == 0
+    names = {r["kernel"] for r in json.loads((tmp_path / "r.json").read_text())["kernels"]}
+    assert {"render_boxes", "splat_faces", "top_alpha_mean"} <= names
