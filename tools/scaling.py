@@ -72,6 +72,10 @@ def measure(engine: Engine, w: Workload, repeat: int) -> dict:
         "timings_s": dict(r.timings_s),
         "candidates_per_s": r.info["evaluated"] / search_s if search_s > 0 else None,
         "rays_per_s_render": r.info["rays"] / r.timings_s["render"] if r.timings_s.get("render", 0) > 0 else None,
+        # auto picks these per search (the renderer by faces per box pixel), so they can change along a sweep
+        "renderer": r.info.get("renderer"),
+        "conv": r.info.get("conv"),
+        "threads": int(r.info.get("threads", 1)),
     }
 
 
@@ -101,8 +105,10 @@ def plot(path: Path, rows: list[dict], title: str) -> None:
                     xytext=(3, 3 + 9 * k),  # a point shared by sweeps gets one label per sweep
                     textcoords="offset points",
                 )
-    axes[0].set(xscale="log", yscale="log", xlabel="candidates evaluated", ylabel="search time (s)")
-    axes[1].set(xscale="log", yscale="log", xlabel="rays cast (rendered pixels)", ylabel="search time (s)")
+    threads = max(r.get("threads", 1) for r in rows)
+    ylabel = "search time (s)" if threads <= 1 else f"search time (CPU s, summed over {threads} threads)"
+    axes[0].set(xscale="log", yscale="log", xlabel="candidates evaluated", ylabel=ylabel)
+    axes[1].set(xscale="log", yscale="log", xlabel="rays cast (rendered pixels)", ylabel=ylabel)
     for ax in axes:
         ax.grid(alpha=0.3, which="both")
         ax.legend(fontsize=8)
@@ -150,7 +156,10 @@ def main(argv: list[str] | None = None) -> int:
         return 1
 
     print(f"device {device_name(device)}, commit {git_commit()}, {w0.label}")
-    print(f"{'sweeps':<26}{'clip m':>7}{'xy m':>6}{'scale':>6}{'cands':>8}{'rays':>12}{'search s':>10}{'wall s':>8}")
+    print(
+        f"{'sweeps':<26}{'clip m':>7}{'xy m':>6}{'scale':>6}{'cands':>8}{'rays':>12}{'search s':>10}{'wall s':>8}"
+        "  renderer"
+    )
     smallest = min(points, key=lambda p: len(p["workload"].space))["workload"]
     for engine in engines.values():
         engine.estimate(smallest.image, smallest.camera, smallest.table, smallest.resting, smallest.space)  # warm-up
@@ -161,7 +170,7 @@ def main(argv: list[str] | None = None) -> int:
         rows.append(row)
         print(
             f"{','.join(row['sweeps']):<26}{row['clip_m']:>7g}{row['xy_step_m']:>6g}{row['image_scale']:>6g}"
-            f"{row['evaluated']:>8}{row['rays']:>12,}{row['search_s']:>10.3f}{row['wall_s']:>8.3f}",
+            f"{row['evaluated']:>8}{row['rays']:>12,}{row['search_s']:>10.3f}{row['wall_s']:>8.3f}  {row['renderer']}",
             flush=True,
         )
     out = args.out
