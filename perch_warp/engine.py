@@ -532,7 +532,9 @@ class Engine:
         until no remaining bound reaches kth_best(indices scored so far). Returns the indices scored,
         the number of rounds and the bounds (-inf where not bounded). scores[i] stays -inf for the
         others: those without feature points (whose score is -inf) and those ruled out (whose score
-        is below the final threshold). The progress bar counts every candidate of idx as done."""
+        is below the final threshold). The progress bar counts a candidate as done once it is scored or
+        can no longer be (its bound below the threshold so far, or no feature points), so that its rate
+        and time left follow where the search will really end."""
         bounds = np.full(len(scores), -np.inf)
         self._bound_some(photo, camera, R, tr, boxes, gboxes, idx, bounds, timings)
         # A candidate without feature points scores -inf whatever it shows: never worth scoring.
@@ -542,6 +544,14 @@ class Engine:
         if bar is not None:
             bar.total += len(idx)
             bar.refresh()
+        reported = 0
+
+        def report(done: int) -> None:
+            nonlocal reported
+            if bar is not None and done > reported:
+                bar.update(done - reported)
+                reported = done
+
         # A round: about one budget of rays per thread, so that the first rounds set the threshold
         # early and each later one stops as soon as the bounds fall below it.
         per_round = self._budget() * self.cpu_threads()
@@ -555,13 +565,11 @@ class Engine:
             sizes = boxes[order[pos:end], 2].astype(np.int64) * boxes[order[pos:end], 3]
             end = pos + max(1, int(np.searchsorted(np.cumsum(sizes), per_round, side="right")))
             self._score_some(photo, camera, R, tr, boxes, gboxes, order[pos:end], scores, timings, None)
-            if bar is not None:
-                bar.update(end - pos)
             pos = end
             rounds += 1
             threshold = kth_best(order[:pos])
-        if bar is not None:
-            bar.update(len(idx) - pos)  # the rest: ruled out or without feature points
+            report(len(idx) - (next_to_score(ranked, pos, threshold) - pos))
+        report(len(idx))
         return order[:pos], rounds, bounds
 
     def _coarse_to_fine(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):

@@ -161,3 +161,40 @@ def test_pyramid_bounds_change_nothing_but_the_work(scene, caffe_weights):
         (k.x_m, k.y_m, k.yaw_rad, k.score) for k in plain.top_k
     ]
     assert bounded.info["evaluated"] < plain.info["evaluated"] and "bound" in bounded.timings_s
+
+
+class _RecordingBar:
+    """Stands in for tqdm: records the count after every update."""
+
+    def __init__(self, total=0, **_):
+        self.total, self.n, self.seen = total, 0, []
+
+    def update(self, n):
+        assert n > 0
+        self.n += n
+        self.seen.append(self.n)
+
+    def refresh(self):
+        pass
+
+    def close(self):
+        pass
+
+
+def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(scene, caffe_weights, monkeypatch):
+    """The bar's time left must follow where the search ends: after each round it counts as done the
+    scored candidates and those whose bound fell below the threshold, so the last round ends it."""
+    import tqdm
+
+    bars = []
+    monkeypatch.setattr(tqdm, "tqdm", lambda *a, **kw: bars.append(_RecordingBar(**kw)) or bars[-1])
+    config = EngineConfig(search="pruned", top_k=5, batch_pixels=20000, cpu_threads=1, refine=False)
+    r = Engine(scene.mesh, caffe_weights, DEVICE, config).estimate(
+        scene.image, scene.camera, scene.table, scene.resting, _space(scene), progress=True
+    )
+    (bar,) = bars
+    assert bar.total == bar.n == r.info["bounded"]
+    assert r.info["scored"] < r.info["bounded"] and r.info["rounds"] > 1
+    # One update per round: a candidate ruled out is counted in the round that rules it out, none at the end.
+    assert len(bar.seen) == r.info["rounds"]
+    assert bar.seen[-1] == bar.total
