@@ -90,17 +90,18 @@ class FeatureScorer:
             self._t_weight = torch.from_numpy(np.ascontiguousarray(oihw)).to(tdev)
             self._t_bias = torch.from_numpy(b).to(tdev)
 
-    def conv_settings(self) -> contextlib.AbstractContextManager:
+    @contextlib.contextmanager
+    def conv_settings(self):
         """torch's settings while batches are scored, for the torch form: one thread per calling
         thread (the engine already runs one batch per core, and a candidate's features must not depend
         on a thread count) and, on a GPU, cuDNN in full fp32 (cudnn_full_precision). Global state, so
         entered once around all of a search's batches, not per batch; nothing for the Warp form."""
-        stack = contextlib.ExitStack()
-        if self.conv == "torch":
-            stack.enter_context(torch_threads(1))
-            if not wp.get_device(self.device).is_cpu:
-                stack.enter_context(cudnn_full_precision())
-        return stack
+        with contextlib.ExitStack() as stack:
+            if self.conv == "torch":
+                stack.enter_context(torch_threads(1))
+                if not wp.get_device(self.device).is_cpu:
+                    stack.enter_context(cudnn_full_precision())
+            yield
 
     def warm_up(self) -> None:
         """Build both kernels now (a tiny launch each) so that compile time is not billed to a search stage."""

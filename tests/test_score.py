@@ -96,3 +96,16 @@ def test_cudnn_full_precision_turns_tf32_off_for_the_block_only():
     assert (cudnn.allow_tf32, cudnn.deterministic, cudnn.benchmark) == before
     if precision is not None:
         assert cudnn.conv.fp32_precision == precision
+
+
+def test_conv_settings_apply_inside_the_block_only(caffe_weights):
+    """The torch form's one-thread setting holds inside `with`, not from the call on, and is undone after."""
+    torch = pytest.importorskip("torch")
+    from perch_warp.score import FeatureScorer
+
+    before = torch.get_num_threads()
+    settings = FeatureScorer(caffe_weights, DEVICE, 4, conv="torch").conv_settings()
+    assert torch.get_num_threads() == before
+    with settings:
+        assert torch.get_num_threads() == 1
+    assert torch.get_num_threads() == before
