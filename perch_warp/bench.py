@@ -28,6 +28,7 @@ import shlex
 import subprocess
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -279,6 +280,22 @@ def time_search(engine, w: Workload, repeat: int, warmup: int = 1) -> dict:
 def search_camera(camera: Camera, image_scale: float) -> Camera:
     """The camera the engine searches with (the photo resized by `image_scale`)."""
     return camera if image_scale == 1.0 else camera.scaled(image_scale)
+
+
+def sample_grid_poses(
+    w: Workload, n: int, seed: int, boxes_of: Callable[[np.ndarray, np.ndarray], np.ndarray]
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Up to n poses of the workload's grid drawn at random (`seed`), those with an empty image box
+    left out: R_m2c (m, 3, 3), t_m2c_m (m, 3) metres (model to camera) and their pixel boxes (m, 4)
+    (x0, y0, w, h) from boxes_of(R_m2c, t_m2c_m). The poses tools/ time kernels on."""
+    from .table import model_to_camera
+
+    x, y, yaw = w.space.candidates()
+    pick = np.random.default_rng(seed).choice(len(x), min(n, len(x)), replace=False)
+    R, t = model_to_camera(w.table, w.resting, x[pick], y[pick], yaw[pick])
+    boxes = boxes_of(R, t)
+    keep = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
+    return R[keep], t[keep], boxes[keep]
 
 
 def poses_in_view(
@@ -595,6 +612,12 @@ def add_frame_arguments(parser) -> None:
     parser.add_argument("--scene", type=int, default=2, help="scene id (default: 2)")
     parser.add_argument("--image", type=int, default=1, help="image id (default: 1)")
     parser.add_argument("--obj", type=int, default=9, help="object id; its first instance in the image (default: 9)")
+
+
+def add_pose_sample_arguments(parser) -> None:
+    """--poses/--seed: the random grid poses of sample_grid_poses, shared with tools/."""
+    parser.add_argument("--poses", type=int, default=300, help="random poses of the reference grid (default 300)")
+    parser.add_argument("--seed", type=int, default=0)
 
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:

@@ -24,20 +24,26 @@ import numpy as np
 import warp as wp
 from perch_warp.kernels.features import NOT_ON_MASK
 
-from perch_warp.bench import add_frame_arguments, default_dataset, device_name, git_commit, load_workload
+from perch_warp.bench import (
+    add_frame_arguments,
+    add_pose_sample_arguments,
+    default_dataset,
+    device_name,
+    git_commit,
+    load_workload,
+    sample_grid_poses,
+)
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
 from perch_warp.features import load_feature_weights
 from perch_warp.score import grid_boxes
-from perch_warp.table import model_to_camera
 
 
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_frame_arguments(ap)
+    add_pose_sample_arguments(ap)
     ap.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
-    ap.add_argument("--poses", type=int, default=300, help="random poses of the reference grid (default 300)")
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeat", type=int, default=3, help="timed calls per form, best kept (default 3)")
     ap.add_argument("--weights", default="caffe")
     ap.add_argument("--out", type=Path, default=None, help="write the figures here as JSON")
@@ -57,12 +63,7 @@ def main(argv: list[str] | None = None) -> int:
         return 1
     e = engines["warp"]
     photo = e._photo(w.image, w.camera, {})
-    x, y, yaw = w.space.candidates()
-    pick = np.random.default_rng(args.seed).choice(len(x), min(args.poses, len(x)), replace=False)
-    R, t = model_to_camera(w.table, w.resting, x[pick], y[pick], yaw[pick])
-    boxes = e.boxes(w.camera, R, t)
-    keep = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
-    R, t, boxes = R[keep], t[keep], boxes[keep]
+    R, t, boxes = sample_grid_poses(w, args.poses, args.seed, lambda R, t: e.boxes(w.camera, R, t))
     gboxes = grid_boxes(boxes, weights.kernel_size, e.config.stride)
     renderer = "raster" if wp.get_device(args.device).is_cpu else "bvh"
     e.renderer.use(renderer)

@@ -31,11 +31,18 @@ import numpy as np
 import warp as wp
 from perch_warp.kernels.render import PixelRays, box_pixel, pixel_ray_m
 
-from perch_warp.bench import add_frame_arguments, default_dataset, git_commit, load_workload, search_camera
+from perch_warp.bench import (
+    add_frame_arguments,
+    add_pose_sample_arguments,
+    default_dataset,
+    git_commit,
+    load_workload,
+    sample_grid_poses,
+    search_camera,
+)
 from perch_warp.features import caffe_weights_path
 from perch_warp.mesh import ObjectMesh
 from perch_warp.render import MeshRenderer, flat_offsets, project_boxes
-from perch_warp.table import model_to_camera
 
 
 @wp.kernel(enable_backward=False)
@@ -108,9 +115,8 @@ def subdivided(mesh: ObjectMesh, times: int) -> ObjectMesh:
 def main(argv: list[str] | None = None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_frame_arguments(ap)
+    add_pose_sample_arguments(ap)
     ap.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
-    ap.add_argument("--poses", type=int, default=300, help="random poses of the reference grid (default 300)")
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--repeat", type=int, default=2, help="timed launches per variant, best kept (default 2)")
     ap.add_argument(
         "--image-scale", type=float, default=1.0, help="the photo resized by this factor, as the search's option"
@@ -136,12 +142,8 @@ def main(argv: list[str] | None = None) -> int:
     w = load_workload(dataset, args.scene, args.image, args.obj, 1.0, 0.01, 0.1)
     mesh = subdivided(w.mesh, args.subdivide)
     cam = search_camera(w.camera, args.image_scale)
-    x, y, yaw = w.space.candidates()
-    pick = np.random.default_rng(args.seed).choice(len(x), min(args.poses, len(x)), replace=False)
-    R, t = model_to_camera(w.table, w.resting, x[pick], y[pick], yaw[pick])
-    boxes = project_boxes(cam, mesh.hull_points_m(), R, t)
-    keep = boxes[:, 2] * boxes[:, 3] > 0
-    R, t, boxes = R[keep], t[keep], boxes[keep]
+    hull_m = mesh.hull_points_m()
+    R, t, boxes = sample_grid_poses(w, args.poses, args.seed, lambda R, t: project_boxes(cam, hull_m, R, t))
     renderer = MeshRenderer(mesh, args.device, "bvh")
     pix_off = flat_offsets(boxes)
     n = int(pix_off[-1])
