@@ -25,16 +25,15 @@ TOOLS = Path(__file__).resolve().parents[1] / "tools"
 # sm_90: the H100/H200 machines the project's GPU figures come from.
 ARCH = 90
 
-KERNEL_MODULES = [
-    "bound",
-    "boxes",
-    "features",
-    "photo",
-    "raster",
-    "raycast_bench",
-    "reduce",
-    "render",
-]
+
+def _resources_tool():
+    spec = importlib.util.spec_from_file_location("cuda_resources", TOOLS / "cuda_resources.py")
+    tool = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(tool)
+    return tool
+
+
+KERNEL_MODULES = _resources_tool().kernel_modules()
 
 
 def _nvrtc_archs() -> list[int]:
@@ -78,11 +77,8 @@ def test_feature_kernels_compile_to_ptx(tmp_path):
         assert any(e.endswith("_cuda_kernel_forward") for e in _ptx_entries(ptx)), kernel.key
 
 
-def _resources_tool():
-    spec = importlib.util.spec_from_file_location("cuda_resources", TOOLS / "cuda_resources.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
-    return tool
+def test_kernel_modules_are_found():
+    assert {"bound", "boxes", "features", "photo", "raster", "raycast_bench", "reduce", "render"} <= set(KERNEL_MODULES)
 
 
 def test_occupancy_formula_reproduces_nsight_compute_on_the_h100():

@@ -35,7 +35,6 @@ SM_LIMITS = {
     100: (2048, 32, 65536),
 }
 REG_ALLOC_UNIT = 256  # registers are allocated per warp in units of 256 (8 per thread)
-KERNEL_MODULES = ("bound", "boxes", "features", "photo", "raster", "raycast_bench", "reduce", "render")
 
 # .nv.info attribute codes (EIATTR_*) read here; each record is (format, attribute, u16) and, for
 # format 4 (a sized value), that many bytes: (symbol index u32, value u32) for these three.
@@ -88,6 +87,21 @@ def theoretical_occupancy(registers: int, block_dim: int, arch: int) -> tuple[fl
     return blocks * warps_per_block / (max_threads // 32), blocks
 
 
+def kernel_modules() -> list[str]:
+    """The modules of perch_warp.kernels that define Warp kernels (found, so a new one is not missed)."""
+    import pkgutil
+
+    import perch_warp.kernels
+    import warp as wp
+
+    names = []
+    for info in pkgutil.iter_modules(perch_warp.kernels.__path__):
+        mod = importlib.import_module(f"perch_warp.kernels.{info.name}")
+        if any(isinstance(v, wp.Kernel) for v in vars(mod).values()):
+            names.append(info.name)
+    return sorted(names)
+
+
 def compile_cubins(arch: int, channels: int, module_dir: Path) -> list[tuple[str, Path]]:
     """(module name, cubin) for every kernel module the engine launches, and the feature kernels
     built for `channels` (each in a module of its own)."""
@@ -95,7 +109,7 @@ def compile_cubins(arch: int, channels: int, module_dir: Path) -> list[tuple[str
     from perch_warp.kernels.features import feature_kernels
 
     out = []
-    for name in KERNEL_MODULES:
+    for name in kernel_modules():
         mod = importlib.import_module(f"perch_warp.kernels.{name}")
         (cubin,) = wp.compile_aot_module(mod, arch=arch, module_dir=module_dir, use_ptx=False)
         out.append((name, cubin))
