@@ -59,17 +59,6 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--coarse-yaw", type=float, default=10.0, help="coarse-to-fine: first lattice's yaw step, deg")
     g.add_argument("--beam", type=int, default=32, help="coarse-to-fine: candidates refined per level (default 32)")
     g.add_argument(
-        "--beam-spread",
-        action="store_true",
-        help="coarse-to-fine: the beam takes separate peaks (none within the next level's reach of a better one)",
-    )
-    g.add_argument(
-        "--coarse-image-scale",
-        type=float,
-        default=1.0,
-        help="coarse-to-fine: score the first lattice on the photo resized by this factor (in (0, 1]; default 1)",
-    )
-    g.add_argument(
         "--refine",
         action=argparse.BooleanOptionalAction,
         default=True,
@@ -154,8 +143,6 @@ def engine_config_from_args(args: argparse.Namespace):
         coarse_xy_m=args.coarse_xy,
         coarse_yaw_rad=math.radians(args.coarse_yaw),
         beam=args.beam,
-        beam_spread=args.beam_spread,
-        coarse_image_scale=args.coarse_image_scale,
         image_scale=args.image_scale,
         cpu_threads=args.cpu_threads,
         refine=args.refine,

@@ -55,12 +55,6 @@ class EngineConfig:
     coarse_xy_m: float = 0.02  # coarse-to-fine: the first lattice's x/y step
     coarse_yaw_rad: float = math.radians(10.0)  # coarse-to-fine: the first lattice's yaw step
     beam: int = 32  # coarse-to-fine: how many best candidates each finer level refines
-    # coarse-to-fine: the beam takes the best candidate, then the best not within the next
-    # level's reach of one already taken, and so on (greedy non-maximum suppression), so that
-    # it spans `beam` separate peaks instead of many neighbours of the same few
-    beam_spread: bool = False
-    # coarse-to-fine: the first lattice is scored on the search's photo resized by this factor
-    coarse_image_scale: float = 1.0
     max_polish: int = 10  # coarse-to-fine: hill-climbing rounds on the final grid
     image_scale: float = 1.0  # search on the photo resized by this factor (camera scaled alike): cheaper on a CPU
     # coarse-to-fine: leave out lattice points whose silhouette bound cannot reach the beam (perch_warp.bound);
@@ -95,10 +89,6 @@ class EngineConfig:
             raise PerchError(f"top_k must be at least 1, got {self.top_k}")
         if not (0.0 < self.image_scale <= 1.0):
             raise PerchError(f"image scale must be in (0, 1], got {self.image_scale}")
-        if not (0.0 < self.coarse_image_scale <= 1.0):
-            raise PerchError(
-                f"coarse image scale (--coarse-image-scale) must be in (0, 1], got {self.coarse_image_scale}"
-            )
         if self.search not in SEARCHES:
             raise PerchError(f"search must be one of {', '.join(SEARCHES)}, got {self.search!r}")
         if self.beam < 1 or self.coarse_xy_m <= 0 or self.coarse_yaw_rad <= 0:
@@ -221,9 +211,8 @@ class Engine:
                 x, y, yaw, scores, extra = self._pruned(photo, camera, table, resting, space, timings, bar)
                 evaluated = extra["scored"]
             else:
-                x, y, yaw, scores, levels, evaluated = self._coarse_to_fine(
-                    image_rgb, photo, camera, table, resting, space, timings, bar
-                )
+                x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
+                evaluated = len(x)
                 extra = {"levels": levels}
             if not np.isfinite(scores).any():
                 raise PerchError(f"the search grid projects outside the image ({space.describe()})")
@@ -583,14 +572,10 @@ class Engine:
         report(len(idx))
         return order[:pos], rounds, bounds
 
-    def _coarse_to_fine(self, image_rgb, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
+    def _coarse_to_fine(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
         """Pyramid search on the space's own grid: a coarse lattice, then around the best `beam`
         candidates ever finer lattices down to the grid step, then hill-climbing on the grid
-        until the best `beam` stop changing. Every grid point is scored at most once at each photo
-        scale: with coarse_image_scale < 1 the first lattice is scored on the photo (`image_rgb`,
-        `camera`) resized by it, whose broader features change less between lattice points, and
-        only its beam is carried on; the finer levels score on the search's photo, and only their
-        scores are returned. Returns x, y, yaw, scores, levels, the number of candidates scored."""
+        until the best `beam` stop changing. Every grid point is scored at most once."""
         cfg = self.config
         xs, ys, yaws = space.axes()
         nx, ny, nk = len(xs), len(ys), len(yaws)
@@ -600,26 +585,13 @@ class Engine:
         steps = [(f_xy, f_yaw)]
         while steps[-1] != (1, 1):
             steps.append((max(1, steps[-1][0] // 2), max(1, steps[-1][1] // 2)))
+        memo: dict[int, float] = {}
+        # Grid points whose silhouette bound fell below the beam's threshold: they can never enter
+        # the beam (the threshold only rises as memo grows), so they are neither scored nor asked again.
+        ruled_out: set[int] = set()
         k_beam = max(cfg.beam, cfg.top_k)
 
-        class _Level:
-            """Scores at one photo scale. Ruled out: grid points whose silhouette bound fell below
-            the beam's threshold; they can never enter the beam (the threshold only rises as memo
-            grows), so they are neither scored nor asked again."""
-
-            def __init__(self, photo, camera):
-                self.photo, self.camera = photo, camera
-                self.memo: dict[int, float] = {}
-                self.ruled_out: set[int] = set()
-
-        fine = _Level(photo, camera)
-        coarse = fine
-        if cfg.coarse_image_scale != 1.0:
-            small_rgb, small_camera = _rescale(image_rgb, camera, cfg.coarse_image_scale)
-            coarse = _Level(self._photo(small_rgb, small_camera, timings), small_camera)
-
-        def run(ijk: np.ndarray, lv: _Level) -> None:
-            memo, ruled_out = lv.memo, lv.ruled_out
+        def run(ijk: np.ndarray) -> None:
             i, j, k = ijk.T
             k = k % nk if wrap else k
             ok = (i >= 0) & (i < nx) & (j >= 0) & (j < ny) & (k >= 0) & (k < nk)
@@ -630,19 +602,17 @@ class Engine:
             ii, rest = np.divmod(flat, ny * nk)
             jj, kk = np.divmod(rest, nk)
             if not cfg.pyramid_bounds:
-                sc = self._score(lv.photo, lv.camera, table, resting, xs[ii], ys[jj], yaws[kk], timings, bar)
+                sc = self._score(photo, camera, table, resting, xs[ii], ys[jj], yaws[kk], timings, bar)
                 memo.update(zip(flat.tolist(), sc.tolist(), strict=True))
                 return
-            R, tr, boxes, gboxes, live = self._candidates(lv.camera, table, resting, xs[ii], ys[jj], yaws[kk], timings)
+            R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, xs[ii], ys[jj], yaws[kk], timings)
             sc = np.full(len(flat), -np.inf)
             known = np.fromiter(memo.values(), dtype=np.float64, count=len(memo))
 
             def kth_best(scored: np.ndarray) -> float:
                 return _kth_largest(np.concatenate([known, sc[scored]]), k_beam)
 
-            scored, _, bounds = self._best_first(
-                lv.photo, lv.camera, R, tr, boxes, gboxes, live, sc, timings, kth_best, bar
-            )
+            scored, _, bounds = self._best_first(photo, camera, R, tr, boxes, gboxes, live, sc, timings, kth_best, bar)
             # Memoised: the scored, and those whose score is -inf because no feature point shows (as
             # without bounds). Ruled out: a finite bound below the threshold, so a score below it too.
             dropped = np.isfinite(bounds)
@@ -650,11 +620,10 @@ class Engine:
             memo.update(zip(flat[~dropped].tolist(), sc[~dropped].tolist(), strict=True))
             ruled_out.update(flat[dropped].tolist())
 
-        def best(lv: _Level, reach: tuple[int, int]) -> np.ndarray:
-            flat = np.fromiter(lv.memo.keys(), dtype=np.int64, count=len(lv.memo))
-            sc = np.fromiter(lv.memo.values(), dtype=np.float64, count=len(lv.memo))
-            order = flat[np.lexsort((flat, -sc))]
-            top = order[: cfg.beam] if not cfg.beam_spread else _spread(order, cfg.beam, reach, (nx, ny, nk), wrap)
+        def best() -> np.ndarray:
+            flat = np.fromiter(memo.keys(), dtype=np.int64, count=len(memo))
+            sc = np.fromiter(memo.values(), dtype=np.float64, count=len(memo))
+            top = flat[np.lexsort((flat, -sc))[: cfg.beam]]
             ii, rest = np.divmod(top, ny * nk)
             jj, kk = np.divmod(rest, nk)
             return np.stack([ii, jj, kk], -1)
@@ -670,45 +639,39 @@ class Engine:
             return np.union1d(a, [n - 1]) if closed else a
 
         li, lj, lk = lattice(nx, f_xy, True), lattice(ny, f_xy, True), lattice(nk, f_yaw, not wrap)
-        run(np.stack(np.meshgrid(li, lj, lk, indexing="ij"), -1).reshape(-1, 3), coarse)
+        run(np.stack(np.meshgrid(li, lj, lk, indexing="ij"), -1).reshape(-1, 3))
         levels = [
             {
                 "step_xy_m": f_xy * space.xy_step_m,
                 "step_yaw_deg": math.degrees(f_yaw * space.yaw_step_rad),
-                "image_scale": cfg.image_scale * cfg.coarse_image_scale,
-                "evaluated": len(coarse.memo),
+                "evaluated": len(memo),
             }
         ]
-        source = coarse
         for prev, step in zip(steps, steps[1:], strict=False):
-            n0 = len(fine.memo)
-            run(around(best(source, prev), prev, step), fine)
-            source = fine
+            n0 = len(memo)
+            run(around(best(), prev, step))
             levels.append(
                 {
                     "step_xy_m": step[0] * space.xy_step_m,
                     "step_yaw_deg": math.degrees(step[1] * space.yaw_step_rad),
-                    "evaluated": len(fine.memo) - n0,
+                    "evaluated": len(memo) - n0,
                 }
             )
-        n0 = len(fine.memo)
+        n0 = len(memo)
         for _ in range(cfg.max_polish):
-            before = len(fine.memo)
-            run(around(best(source, (1, 1)), (1, 1), (1, 1)), fine)
-            source = fine
-            if len(fine.memo) == before:
+            before = len(memo)
+            run(around(best(), (1, 1), (1, 1)))
+            if len(memo) == before:
                 break
-        levels.append({"polish_evaluated": len(fine.memo) - n0})
+        levels.append({"polish_evaluated": len(memo) - n0})
 
-        memo = fine.memo
         flat = np.fromiter(memo.keys(), dtype=np.int64, count=len(memo))
         order = np.argsort(flat)
         flat = flat[order]
         sc = np.fromiter(memo.values(), dtype=np.float64, count=len(memo))[order]
         ii, rest = np.divmod(flat, ny * nk)
         jj, kk = np.divmod(rest, nk)
-        evaluated = len(memo) + (len(coarse.memo) if coarse is not fine else 0)
-        return xs[ii], ys[jj], yaws[kk], sc, levels, evaluated
+        return xs[ii], ys[jj], yaws[kk], sc, levels
 
 
 def _auto_search(device: str) -> str:
@@ -743,33 +706,6 @@ def _rescale(image_rgb: np.ndarray, camera: Camera, factor: float) -> tuple[np.n
     small = camera.scaled(factor)
     img = Image.fromarray(image_rgb).resize((small.width, small.height), Image.Resampling.BOX)
     return np.asarray(img), small
-
-
-def _spread(order: np.ndarray, n: int, reach: tuple[int, int], shape: tuple[int, int, int], wrap: bool) -> np.ndarray:
-    """Greedy non-maximum suppression on the grid: walk the flat grid indices `order` (best first)
-    and keep each one not within `reach` (x/y, yaw grid steps; yaw around the circle when `wrap`)
-    of one kept before, until `n` are kept."""
-    nx, ny, nk = shape
-    dxy = np.arange(-reach[0], reach[0] + 1)
-    dk = np.arange(-reach[1], reach[1] + 1)
-    D = np.stack(np.meshgrid(dxy, dxy, dk, indexing="ij"), -1).reshape(-1, 3)
-    kept: list[int] = []
-    covered: set[int] = set()
-    for f in order.tolist():
-        if f in covered:
-            continue
-        kept.append(f)
-        if len(kept) == n:
-            break
-        i, rest = divmod(f, ny * nk)
-        j, k = divmod(rest, nk)
-        nb = np.array([i, j, k]) + D
-        if wrap:
-            nb[:, 2] %= nk
-        ok = (nb[:, 0] >= 0) & (nb[:, 0] < nx) & (nb[:, 1] >= 0) & (nb[:, 1] < ny) & (nb[:, 2] >= 0) & (nb[:, 2] < nk)
-        nb = nb[ok]
-        covered.update(((nb[:, 0] * ny + nb[:, 1]) * nk + nb[:, 2]).tolist())
-    return np.array(kept, dtype=np.int64)
 
 
 def _kth_largest(values: np.ndarray, k: int) -> float:
