@@ -35,6 +35,11 @@ from .table import RestingPose, Table, model_to_camera, pose_matrix
 
 SEARCHES = ("auto", "exhaustive", "pruned", "coarse-to-fine")
 
+# Candidates whose poses and boxes are set up at once (host and device memory): a search keeps
+# a few numbers per candidate of its space (score, bound, box size) and nothing larger, so no
+# step needs all candidates' poses at once, however large the space.
+SETUP_CHUNK = 1 << 17
+
 
 @dataclass(frozen=True)
 class EngineConfig:
@@ -108,6 +113,26 @@ class EngineConfig:
             raise PerchError(
                 f"cpu_threads (--cpu-threads) must be at least 1, or None for one per core; got {self.cpu_threads}"
             )
+
+
+class _Poses:
+    """Candidates 0..n-1 of a search, their table-frame (x_m, y_m, yaw_rad) given by at(indices);
+    their camera poses and boxes are set up a chunk at a time (Engine._setup)."""
+
+    def __init__(self, n: int, at) -> None:
+        self.n, self.at = n, at
+
+    @classmethod
+    def of_space(cls, space: SearchSpace) -> _Poses:
+        return cls(len(space), space.at)
+
+    @classmethod
+    def of_arrays(cls, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> _Poses:
+        return cls(len(x), lambda i: (x[i], y[i], yaw[i]))
+
+    def chunks(self):
+        for lo in range(0, self.n, SETUP_CHUNK):
+            yield np.arange(lo, min(self.n, lo + SETUP_CHUNK))
 
 
 @dataclass
@@ -203,22 +228,23 @@ class Engine:
             photo = self._photo(image_rgb, camera, timings)
             extra: dict = {}
             search = self.search
+            flat = None  # scores[i] is grid candidate flat[i]; None: candidate i
             if search == "exhaustive":
-                x, y, yaw = space.candidates()
-                scores = self._score(photo, camera, table, resting, x, y, yaw, timings, bar)
-                evaluated = len(x)
+                scores = self._score_poses(photo, camera, table, resting, _Poses.of_space(space), timings, bar)
+                evaluated = len(space)
             elif search == "pruned":
-                x, y, yaw, scores, extra = self._pruned(photo, camera, table, resting, space, timings, bar)
+                scores, extra = self._pruned(photo, camera, table, resting, space, timings, bar)
                 evaluated = extra["scored"]
             else:
-                x, y, yaw, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
-                evaluated = len(x)
+                flat, scores, levels = self._coarse_to_fine(photo, camera, table, resting, space, timings, bar)
+                evaluated = len(flat)
                 extra = {"levels": levels}
             if not np.isfinite(scores).any():
                 raise PerchError(f"the search grid projects outside the image ({space.describe()})")
             # Stable order: ties go to the earlier candidate, so results are reproducible.
-            order = np.argsort(-scores, kind="stable")[: cfg.top_k]
-            top = [(float(x[i]), float(y[i]), float(yaw[i]), float(scores[i])) for i in order]
+            order = _top_indices(scores, cfg.top_k)
+            x, y, yaw = space.at(order if flat is None else flat[order])
+            top = [(float(x[n]), float(y[n]), float(yaw[n]), float(scores[i])) for n, i in enumerate(order)]
             if cfg.refine:
                 top, extra["refine"] = self._refine(photo, camera, table, resting, space, top, timings)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _score).
@@ -274,20 +300,20 @@ class Engine:
         # The same best either way; after coarse-to-fine, the one "auto" picks for the device.
         search = self.search if self.search in ("exhaustive", "pruned") else _auto_search(self.device)
         if search == "pruned":
-            x, y, yaw, scores, _ = self._pruned(photo, camera, table, resting, cell, inner)
+            scores, _ = self._pruned(photo, camera, table, resting, cell, inner)
         else:
-            x, y, yaw = cell.candidates()
-            scores = self._score(photo, camera, table, resting, x, y, yaw, inner)
+            scores = self._score_poses(photo, camera, table, resting, _Poses.of_space(cell), inner)
         i = int(np.argmax(scores))  # the first of equal maxima
+        (x_i,), (y_i,), (yaw_i,) = cell.at(np.array([i]))
         # A cell may reach below 0 on the full circle: the same poses as below 2π, reported there.
-        yaw_i = float(yaw[i]) % (2 * math.pi) if space.full_circle else float(yaw[i])
-        best = (float(x[i]), float(y[i]), yaw_i, float(scores[i]))
+        yaw_i = float(yaw_i) % (2 * math.pi) if space.full_circle else float(yaw_i)
+        best = (float(x_i), float(y_i), yaw_i, float(scores[i]))
         info = {
             "step_xy_m": cell.xy_step_m,
             "step_yaw_deg": math.degrees(cell.yaw_step_rad),
             "cell": cell.describe(),
             "search": search,
-            "candidates": len(x),
+            "candidates": len(cell),
             "evaluated": int(np.isfinite(scores).sum()),
             "from": {"x_m": x0, "y_m": y0, "yaw_deg": math.degrees(yaw0), "score": s0},
             "score_gain": best[3] - s0,
@@ -323,9 +349,9 @@ class Engine:
         if self.config.renderer == "auto":
             median = 0.0
             if wp.get_device(self.device).is_cpu:
-                x, y, yaw = space.candidates()
-                pick = np.random.default_rng(0).choice(len(x), min(256, len(x)), replace=False)
-                R, t = model_to_camera(table, resting, x[pick], y[pick], yaw[pick])
+                n = len(space)
+                x, y, yaw = space.at(np.random.default_rng(0).choice(n, min(256, n), replace=False))
+                R, t = model_to_camera(table, resting, x, y, yaw)
                 boxes = self.boxes(camera, R, t)
                 shown = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)  # -1: behind the camera, 0: outside the image
                 areas = boxes[shown, 2].astype(np.int64) * boxes[shown, 3]
@@ -391,11 +417,24 @@ class Engine:
         self._lap(timings, "candidates", t)
         return R, tr, boxes, gboxes, live
 
-    def _score(self, photo, camera, table, resting, x, y, yaw, timings: dict, bar=None) -> np.ndarray:
-        """Score of each candidate (x_m, y_m, yaw_rad arrays); -inf where it shows no feature point."""
-        R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
-        scores = np.full(len(x), -np.inf)
-        self._score_some(photo, camera, R, tr, boxes, gboxes, live, scores, timings, bar)
+    def _setup(self, camera, table, resting, poses: _Poses, idx: np.ndarray, timings: dict):
+        """Engine._candidates of candidates idx of poses (a chunk: the arrays are idx's, in its order)."""
+        return self._candidates(camera, table, resting, *poses.at(idx), timings)
+
+    def _score_poses(self, photo, camera, table, resting, poses: _Poses, timings: dict, bar=None) -> np.ndarray:
+        """Score of each candidate of poses, set up a chunk at a time; -inf where it shows no feature point
+        (those count as done on the progress bar at once)."""
+        scores = np.full(poses.n, -np.inf)
+        if bar is not None:
+            bar.total += poses.n
+            bar.refresh()
+        for idx in poses.chunks():
+            R, tr, boxes, gboxes, live = self._setup(camera, table, resting, poses, idx, timings)
+            if bar is not None:
+                bar.update(len(idx) - len(live))
+            part = np.full(len(idx), -np.inf)
+            self._score_some(photo, camera, R, tr, boxes, gboxes, live, part, timings, bar)
+            scores[idx] = part
         return scores
 
     def _score_some(self, photo, camera, R, tr, boxes, gboxes, idx, scores, timings: dict, bar=None) -> None:
@@ -425,9 +464,6 @@ class Engine:
         batches = [idx[lo:hi] for lo, hi in _split_by_budget(sizes, budget)]
         self._n_batches += len(batches)
         threads = min(threads, len(batches))
-        if bar is not None:
-            bar.total += len(idx)
-            bar.refresh()
 
         def done(b: np.ndarray, values: np.ndarray, laps: dict[str, float]) -> None:
             out[b] = values  # by candidate index: the order batches finish in does not matter
@@ -508,41 +544,52 @@ class Engine:
     def _pruned(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
         """Every grid candidate bounded by its silhouette (perch_warp.bound), then scored best bound
         first until no remaining bound reaches the k-th best score: the exhaustive search's top-k,
-        scoring only the candidates that could be in it."""
-        x, y, yaw = space.candidates()
-        R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, x, y, yaw, timings)
-        scores = np.full(len(x), -np.inf)
+        scoring only the candidates that could be in it. Returns the scores (-inf where not scored)
+        in candidates()'s order and what the search did."""
+        scores = np.full(len(space), -np.inf)
         k = self.config.top_k
 
         def kth_best(scored: np.ndarray) -> float:
             return _kth_largest(scores[scored], k)
 
-        scored, rounds, _ = self._best_first(photo, camera, R, tr, boxes, gboxes, live, scores, timings, kth_best, bar)
+        scored, rounds, _, bounded = self._best_first(
+            photo, camera, table, resting, _Poses.of_space(space), scores, timings, kth_best, bar
+        )
         info = {
-            "bounded": len(live),
+            "bounded": bounded,
             "scored": len(scored),
             "rounds": rounds,
             "bound_rays": self._n_bound_rays,
             "k": k,  # the rank whose score a bound had to reach
         }
-        return x, y, yaw, scores, info
+        return scores, info
 
-    def _best_first(self, photo, camera, R, tr, boxes, gboxes, idx, scores, timings, kth_best, bar=None):
-        """Bound candidates idx, then score them best bound first, a round of batches at a time,
-        until no remaining bound reaches kth_best(indices scored so far). Returns the indices scored,
-        the number of rounds and the bounds (-inf where not bounded). scores[i] stays -inf for the
-        others: those without feature points (whose score is -inf) and those ruled out (whose score
-        is below the final threshold). The progress bar counts a candidate as done once it is scored or
-        can no longer be (its bound below the threshold so far, or no feature points), so that its rate
-        and time left follow where the search will really end."""
-        bounds = np.full(len(scores), -np.inf)
-        self._bound_some(photo, camera, R, tr, boxes, gboxes, idx, bounds, timings)
+    def _best_first(self, photo, camera, table, resting, poses: _Poses, scores, timings, kth_best, bar=None):
+        """Bound the candidates of poses (those showing feature points), then score them best bound
+        first, a round of batches at a time, until no remaining bound reaches kth_best(indices scored
+        so far). Returns the indices scored, the number of rounds, the bounds (-inf where not bounded)
+        and the number bounded. scores[i] stays -inf for the others: those without feature points
+        (whose score is -inf) and those ruled out (whose score is below the final threshold). Poses
+        and boxes are set up a chunk at a time, for the bounds and again for each round; only a
+        bound and a box size per candidate are kept. The progress bar counts a candidate as done
+        once it is scored or can no longer be (its bound below the threshold so far, or no feature
+        points), so that its rate and time left follow where the search will really end."""
+        bounds = np.full(poses.n, -np.inf)
+        box_px = np.zeros(poses.n, dtype=np.int64)
+        n_live = 0
+        for idx in poses.chunks():
+            R, tr, boxes, gboxes, live = self._setup(camera, table, resting, poses, idx, timings)
+            box_px[idx] = boxes[:, 2].astype(np.int64) * boxes[:, 3]
+            part = np.full(len(idx), -np.inf)
+            self._bound_some(photo, camera, R, tr, boxes, gboxes, live, part, timings)
+            bounds[idx] = part
+            n_live += len(live)
         # A candidate without feature points scores -inf whatever it shows: never worth scoring.
-        order = idx[np.argsort(-bounds[idx], kind="stable")]
+        order = np.argsort(-bounds, kind="stable")
         order = order[np.isfinite(bounds[order])]
         ranked = bounds[order]
         if bar is not None:
-            bar.total += len(idx)
+            bar.total += n_live
             bar.refresh()
         reported = 0
 
@@ -559,18 +606,22 @@ class Engine:
         pos = 0
         rounds = 0
         while pos < len(order):
-            end = next_to_score(ranked, pos, threshold)
+            end = min(next_to_score(ranked, pos, threshold), pos + SETUP_CHUNK)
             if end <= pos:
                 break
-            sizes = boxes[order[pos:end], 2].astype(np.int64) * boxes[order[pos:end], 3]
+            sizes = box_px[order[pos:end]]
             end = pos + max(1, int(np.searchsorted(np.cumsum(sizes), per_round, side="right")))
-            self._score_some(photo, camera, R, tr, boxes, gboxes, order[pos:end], scores, timings, None)
+            idx = order[pos:end]
+            R, tr, boxes, gboxes, _ = self._setup(camera, table, resting, poses, idx, timings)
+            part = np.full(len(idx), -np.inf)
+            self._score_some(photo, camera, R, tr, boxes, gboxes, np.arange(len(idx)), part, timings, None)
+            scores[idx] = part
             pos = end
             rounds += 1
             threshold = kth_best(order[:pos])
-            report(len(idx) - (next_to_score(ranked, pos, threshold) - pos))
-        report(len(idx))
-        return order[:pos], rounds, bounds
+            report(n_live - (next_to_score(ranked, pos, threshold) - pos))
+        report(n_live)
+        return order[:pos], rounds, bounds, n_live
 
     def _coarse_to_fine(self, photo, camera, table, resting, space: SearchSpace, timings: dict, bar=None):
         """Pyramid search on the space's own grid: a coarse lattice, then around the best `beam`
@@ -601,18 +652,18 @@ class Engine:
                 return
             ii, rest = np.divmod(flat, ny * nk)
             jj, kk = np.divmod(rest, nk)
+            poses = _Poses.of_arrays(xs[ii], ys[jj], yaws[kk])
             if not cfg.pyramid_bounds:
-                sc = self._score(photo, camera, table, resting, xs[ii], ys[jj], yaws[kk], timings, bar)
+                sc = self._score_poses(photo, camera, table, resting, poses, timings, bar)
                 memo.update(zip(flat.tolist(), sc.tolist(), strict=True))
                 return
-            R, tr, boxes, gboxes, live = self._candidates(camera, table, resting, xs[ii], ys[jj], yaws[kk], timings)
             sc = np.full(len(flat), -np.inf)
             known = np.fromiter(memo.values(), dtype=np.float64, count=len(memo))
 
             def kth_best(scored: np.ndarray) -> float:
                 return _kth_largest(np.concatenate([known, sc[scored]]), k_beam)
 
-            scored, _, bounds = self._best_first(photo, camera, R, tr, boxes, gboxes, live, sc, timings, kth_best, bar)
+            scored, _, bounds, _ = self._best_first(photo, camera, table, resting, poses, sc, timings, kth_best, bar)
             # Memoised: the scored, and those whose score is -inf because no feature point shows (as
             # without bounds). Ruled out: a finite bound below the threshold, so a score below it too.
             dropped = np.isfinite(bounds)
@@ -667,11 +718,8 @@ class Engine:
 
         flat = np.fromiter(memo.keys(), dtype=np.int64, count=len(memo))
         order = np.argsort(flat)
-        flat = flat[order]
         sc = np.fromiter(memo.values(), dtype=np.float64, count=len(memo))[order]
-        ii, rest = np.divmod(flat, ny * nk)
-        jj, kk = np.divmod(rest, nk)
-        return xs[ii], ys[jj], yaws[kk], sc, levels
+        return flat[order], sc, levels  # flat indices into candidates()'s order, ascending
 
 
 def _auto_search(device: str) -> str:
@@ -706,6 +754,17 @@ def _rescale(image_rgb: np.ndarray, camera: Camera, factor: float) -> tuple[np.n
     small = camera.scaled(factor)
     img = Image.fromarray(image_rgb).resize((small.width, small.height), Image.Resampling.BOX)
     return np.asarray(img), small
+
+
+def _top_indices(scores: np.ndarray, k: int) -> np.ndarray:
+    """Indices of the k largest scores, best first, ties to the lower index: the first k of a
+    stable argsort of -scores, without sorting the whole space."""
+    if len(scores) > k:
+        kth = np.partition(scores, len(scores) - k)[len(scores) - k]
+        idx = np.flatnonzero(scores >= kth)
+    else:
+        idx = np.arange(len(scores))
+    return idx[np.argsort(-scores[idx], kind="stable")][:k]
 
 
 def _kth_largest(values: np.ndarray, k: int) -> float:

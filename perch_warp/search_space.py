@@ -61,6 +61,14 @@ class SearchSpace:
         X, Y, A = np.meshgrid(xs, ys, yaws, indexing="ij")
         return X.ravel(), Y.ravel(), A.ravel()
 
+    def at(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x_m, y_m, yaw_rad) of the candidates with these flat indices into candidates()'s order
+        ((i_x * n_y + i_y) * n_yaw + i_yaw), without setting up the others."""
+        xs, ys, yaws = self.axes()
+        i, rest = np.divmod(np.asarray(flat, dtype=np.int64), len(ys) * len(yaws))
+        j, k = np.divmod(rest, len(yaws))
+        return xs[i], ys[j], yaws[k]
+
     def describe(self) -> str:
         xs, ys, yaws = self.axes()
         (x0, x1), (y0, y1) = self.x_range_m, self.y_range_m

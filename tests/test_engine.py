@@ -7,9 +7,10 @@ import numpy as np
 import pytest
 from _device import DEVICE
 
+import perch_warp.engine as engine_mod
 from perch_warp.camera import camera_from_entry
 from perch_warp.demo import demo_scene
-from perch_warp.engine import Engine, EngineConfig
+from perch_warp.engine import Engine, EngineConfig, _top_indices
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
 from perch_warp.pose_error import adi
@@ -111,6 +112,45 @@ def test_coarse_to_fine_scores_a_subset_and_matches_exhaustive_here(scene, caffe
     assert c2f.info["evaluated"] < len(space) / 3
     assert (c2f.x_m, c2f.y_m, c2f.yaw_rad) == (ex.x_m, ex.y_m, ex.yaw_rad)
     assert c2f.score == pytest.approx(ex.score, abs=1e-6)
+
+
+def test_top_indices_are_a_stable_sorts_first_k():
+    rng = np.random.default_rng(0)
+    scores = rng.integers(0, 6, 300).astype(float)  # many ties
+    scores[rng.choice(300, 40, replace=False)] = -np.inf
+    for k in (1, 5, 17, 300, 400):
+        np.testing.assert_array_equal(_top_indices(scores, k), np.argsort(-scores, kind="stable")[:k])
+    few = np.array([-np.inf, 2.0, -np.inf])
+    np.testing.assert_array_equal(_top_indices(few, 5), [1, 0, 2])
+
+
+@pytest.mark.parametrize("search", ["exhaustive", "pruned", "coarse-to-fine"])
+def test_candidates_are_set_up_a_chunk_at_a_time(scene, random_weights, monkeypatch, search):
+    """No step sets up more than SETUP_CHUNK candidates' poses and boxes at once, and the answer
+    does not depend on the chunk size."""
+    space = _space_around(*scene.truth_xy_yaw[:2], half=0.03, yaw_step_deg=45.0)  # 7 x 7 x 8 = 392
+    cfg = EngineConfig(search=search, coarse_xy_m=0.02, coarse_yaw_rad=math.radians(90), beam=4, top_k=5, refine=False)
+    args = (scene.image, scene.camera, scene.table, scene.resting, space)
+    whole = Engine(scene.mesh, random_weights, DEVICE, cfg).estimate(*args)
+
+    sizes = []
+    setup = Engine._candidates
+
+    def spy(self, camera, table, resting, x, y, yaw, timings):
+        sizes.append(len(x))
+        return setup(self, camera, table, resting, x, y, yaw, timings)
+
+    monkeypatch.setattr(engine_mod, "SETUP_CHUNK", 23)
+    monkeypatch.setattr(Engine, "_candidates", spy)
+    chunked = Engine(scene.mesh, random_weights, DEVICE, cfg).estimate(*args)
+    assert sizes and max(sizes) <= 23
+    if search != "coarse-to-fine":  # every candidate set up, in chunks
+        assert sum(sizes) >= len(space)
+    assert [(c.x_m, c.y_m, c.yaw_rad) for c in chunked.top_k] == [(c.x_m, c.y_m, c.yaw_rad) for c in whole.top_k]
+    np.testing.assert_allclose([c.score for c in chunked.top_k], [c.score for c in whole.top_k], rtol=0, atol=1e-6)
+    # The pruned search's rounds also stop at a chunk, so it may score fewer; what it bounds is the same.
+    for key in ("bounded",) if search == "pruned" else ("evaluated",):
+        assert chunked.info[key] == whole.info[key]
 
 
 def test_half_scale_search_finds_the_pose_too(scene, caffe_weights):

@@ -19,6 +19,19 @@ def test_grid_is_inclusive_in_xy_and_open_on_the_full_circle():
     assert xs[-1] == pytest.approx(0.1)
 
 
+def test_candidates_by_flat_index_are_those_of_the_whole_grid():
+    s = SearchSpace((-0.05, 0.03), (0.1, 0.16), 0.02, (0.0, 2 * math.pi), math.radians(45))
+    x, y, yaw = s.candidates()
+    assert len(x) == len(s) == 5 * 4 * 8
+    ax, ay, ayaw = s.at(np.arange(len(s)))
+    np.testing.assert_array_equal(ax, x)
+    np.testing.assert_array_equal(ay, y)
+    np.testing.assert_array_equal(ayaw, yaw)
+    pick = np.array([159, 0, 37, 8])
+    for a, b in zip(s.at(pick), (x[pick], y[pick], yaw[pick]), strict=True):
+        np.testing.assert_array_equal(a, b)
+
+
 def test_partial_yaw_range_includes_its_end():
     s = SearchSpace((0, 0), (0, 0), 0.01, (0, math.radians(90)), math.radians(30))
     assert len(s) == 4
