@@ -247,7 +247,7 @@ class Engine:
             top = [(float(x[n]), float(y[n]), float(yaw[n]), float(scores[i])) for n, i in enumerate(order)]
             if cfg.refine:
                 top, extra["refine"] = self._refine(photo, camera, table, resting, space, top, timings)
-            # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _score).
+            # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _batched).
             wall_s = time.perf_counter() - t_start
         finally:
             if bar is not None:
@@ -409,8 +409,8 @@ class Engine:
         if np.any(boxes[:, 2] < 0):
             n_bad = int((boxes[:, 2] < 0).sum())
             raise PerchError(
-                f"{n_bad} of {len(boxes)} candidate poses are behind or within {MIN_DEPTH_M} m of the camera: "
-                "check the table frame and the search ranges"
+                f"{n_bad} of {len(boxes)} candidate poses set up together are behind or within {MIN_DEPTH_M} m "
+                "of the camera: check the table frame and the search ranges"
             )
         gboxes = grid_boxes(boxes, self.weights.kernel_size, cfg.stride)
         live = np.flatnonzero(gboxes[:, 2] * gboxes[:, 3] > 0)
