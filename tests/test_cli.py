@@ -173,3 +173,26 @@ def test_demo_runs_and_says_what_ran(caffe_weights, tmp_path, capsys):
     assert "renderer: raster (auto on cpu: 12 faces <= 3 x the median candidate box" in out
     assert "features: conv1 by torch conv2d on each candidate's crop (auto on cpu)" in out
     assert (tmp_path / "demo" / "overlay.png").exists() and (tmp_path / "demo" / "result.json").exists()
+
+
+def test_option_lists_written_out_for_help_match_the_engine():
+    """--help lists choices and the auto renderer's threshold literally (so that it needs no warp
+    import); they must say what the engine accepts and does."""
+    import argparse
+
+    from perch_warp import bench, cli
+    from perch_warp.engine import SEARCHES
+    from perch_warp.render import RASTER_FACES_PER_PIXEL, RENDERERS
+    from perch_warp.score import CONVS
+
+    def actions(add):
+        p = argparse.ArgumentParser()
+        add(p)
+        return {a.dest: a for a in p._actions}
+
+    for add, searches in ((cli.add_method_arguments, SEARCHES), (bench.add_arguments, SEARCHES[1:])):
+        a = actions(add)
+        assert tuple(a["search"].choices) == tuple(searches)
+        assert tuple(a["renderer"].choices) == tuple(RENDERERS)
+        assert tuple(a["conv"].choices) == tuple(CONVS)
+    assert f"over {RASTER_FACES_PER_PIXEL:g} faces per pixel" in actions(cli.add_method_arguments)["renderer"].help
