@@ -290,9 +290,7 @@ def sample_grid_poses(
     (x0, y0, w, h) from boxes_of(R_m2c, t_m2c_m). The poses tools/ time kernels on."""
     from .table import model_to_camera
 
-    x, y, yaw = w.space.candidates()
-    pick = np.random.default_rng(seed).choice(len(x), min(n, len(x)), replace=False)
-    R, t = model_to_camera(w.table, w.resting, x[pick], y[pick], yaw[pick])
+    R, t = model_to_camera(w.table, w.resting, *w.space.sample(n, seed))
     boxes = boxes_of(R, t)
     keep = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)
     return R[keep], t[keep], boxes[keep]

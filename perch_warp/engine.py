@@ -349,9 +349,7 @@ class Engine:
         if self.config.renderer == "auto":
             median = 0.0
             if wp.get_device(self.device).is_cpu:
-                n = len(space)
-                x, y, yaw = space.at(np.random.default_rng(0).choice(n, min(256, n), replace=False))
-                R, t = model_to_camera(table, resting, x, y, yaw)
+                R, t = model_to_camera(table, resting, *space.sample(256, seed=0))
                 boxes = self.boxes(camera, R, t)
                 shown = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)  # -1: behind the camera, 0: outside the image
                 areas = boxes[shown, 2].astype(np.int64) * boxes[shown, 3]
@@ -628,8 +626,7 @@ class Engine:
         candidates ever finer lattices down to the grid step, then hill-climbing on the grid
         until the best `beam` stop changing. Every grid point is scored at most once."""
         cfg = self.config
-        xs, ys, yaws = space.axes()
-        nx, ny, nk = len(xs), len(ys), len(yaws)
+        nx, ny, nk = (len(a) for a in space.axes())
         wrap = space.full_circle
         f_xy = max(1, round(cfg.coarse_xy_m / space.xy_step_m))
         f_yaw = max(1, round(cfg.coarse_yaw_rad / space.yaw_step_rad))
@@ -650,9 +647,7 @@ class Engine:
             flat = np.array([f for f in flat.tolist() if f not in memo and f not in ruled_out], dtype=np.int64)
             if len(flat) == 0:
                 return
-            ii, rest = np.divmod(flat, ny * nk)
-            jj, kk = np.divmod(rest, nk)
-            poses = _Poses.of_arrays(xs[ii], ys[jj], yaws[kk])
+            poses = _Poses.of_arrays(*space.at(flat))
             if not cfg.pyramid_bounds:
                 sc = self._score_poses(photo, camera, table, resting, poses, timings, bar)
                 memo.update(zip(flat.tolist(), sc.tolist(), strict=True))

@@ -69,6 +69,12 @@ class SearchSpace:
         j, k = np.divmod(rest, len(yaws))
         return xs[i], ys[j], yaws[k]
 
+    def sample(self, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x_m, y_m, yaw_rad) of min(n, len(self)) distinct candidates drawn at random (`seed`),
+        without setting up the others."""
+        size = len(self)
+        return self.at(np.random.default_rng(seed).choice(size, min(n, size), replace=False))
+
     def describe(self) -> str:
         xs, ys, yaws = self.axes()
         (x0, x1), (y0, y1) = self.x_range_m, self.y_range_m

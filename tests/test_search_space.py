@@ -32,6 +32,16 @@ def test_candidates_by_flat_index_are_those_of_the_whole_grid():
         np.testing.assert_array_equal(a, b)
 
 
+def test_samples_are_distinct_grid_candidates_and_repeat_with_the_seed():
+    s = SearchSpace((-0.05, 0.03), (0.1, 0.16), 0.02, (0.0, 2 * math.pi), math.radians(45))
+    grid = set(zip(*(a.round(9).tolist() for a in s.candidates()), strict=True))
+    x, y, yaw = s.sample(50, seed=3)
+    picked = list(zip(x.round(9).tolist(), y.round(9).tolist(), yaw.round(9).tolist(), strict=True))
+    assert len(set(picked)) == 50 and set(picked) <= grid
+    np.testing.assert_array_equal(s.sample(50, seed=3)[2], yaw)
+    assert len(s.sample(1000, seed=0)[0]) == len(s)  # at most the whole grid
+
+
 def test_partial_yaw_range_includes_its_end():
     s = SearchSpace((0, 0), (0, 0), 0.01, (0, math.radians(90)), math.radians(30))
     assert len(s) == 4
