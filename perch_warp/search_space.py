@@ -62,7 +62,7 @@ class SearchSpace:
         return X.ravel(), Y.ravel(), A.ravel()
 
     def at(self, flat: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(x_m, y_m, yaw_rad) of the candidates with these flat indices into candidates()'s order
+        """Table-frame (x_m, y_m, yaw_rad) of the candidates with these flat indices into candidates()'s order
         ((i_x * n_y + i_y) * n_yaw + i_yaw), without setting up the others."""
         xs, ys, yaws = self.axes()
         i, rest = np.divmod(np.asarray(flat, dtype=np.int64), len(ys) * len(yaws))
@@ -70,7 +70,7 @@ class SearchSpace:
         return xs[i], ys[j], yaws[k]
 
     def sample(self, n: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(x_m, y_m, yaw_rad) of min(n, len(self)) distinct candidates drawn at random (`seed`),
+        """Table-frame (x_m, y_m, yaw_rad) of min(n, len(self)) distinct candidates drawn at random (`seed`),
         without setting up the others."""
         size = len(self)
         return self.at(np.random.default_rng(seed).choice(size, min(n, size), replace=False))
