@@ -9,8 +9,12 @@ count towards its size with score 0, so α stays the fraction of the *object* th
 must be visible, and a pose mostly outside the picture cannot win on a few points.
 
 The candidate's image is never materialised: a window pixel takes the rendered
-colour where the candidate's mask covers it and the photo's colour elsewhere
-(compositing onto the observed image, thesis §3.2.1).
+colour where the candidate's mask covers it and, elsewhere, the photo's colour
+(compositing onto the observed image, thesis §3.2.1) or a fill colour (`Surround`:
+the preprocessing mean, so that only the render counts; perch_warp.score_terms).
+
+A point's value is cos(R, I) * gain - offset, with the photo's per-point maps `PointWeights`
+(gain = rarity, offset = what the background alone earns; 0 for the thesis's score).
 
 Weights arrive folded with the network's preprocessing (they act on RGB in [0, 1])
 and tap-major: Wt[(dy * ks + dx) * 3 + ch_in] is a C-vector over output channels,
@@ -33,6 +37,24 @@ from .render import find_candidate
 
 # Marks feature points that are not on the candidate's mask; far below any score.
 NOT_ON_MASK = -1.0e30
+
+
+@wp.struct
+class Surround:
+    """What a candidate's windows see beyond its mask: the photo (use_fill 0) or the colour fill
+    (RGB in [0, 1])."""
+
+    use_fill: int
+    fill: wp.vec3
+
+
+@wp.struct
+class PointWeights:
+    """The photo's maps on its feature grid (rows, cols): a compared point scores
+    cos * gain[gy, gx] - offset[gy, gx]."""
+
+    gain: wp.array2d(dtype=float)
+    offset: wp.array2d(dtype=float)
 
 
 @wp.func
@@ -74,12 +96,15 @@ def composite(
     rb: wp.vec4i,
     x: int,
     y: int,
+    sur: Surround,
 ) -> wp.vec3:
-    """The candidate's image at pixel (x, y): rendered where its mask covers it, else the photo."""
+    """The candidate's image at pixel (x, y): rendered where its mask covers it, else the photo or the fill."""
     if in_box(rb, x, y):
         j = roff + (y - rb[1]) * rb[2] + (x - rb[0])
         if mask[j] != wp.uint8(0):
             return rgb[j]
+    if sur.use_fill != 0:
+        return sur.fill
     return image[y, x]
 
 
@@ -119,6 +144,7 @@ def composite_crops(
     box: wp.array(dtype=wp.vec4i),
     crop: wp.array(dtype=wp.vec4i),
     crop_off: wp.array(dtype=wp.int32),
+    sur: Surround,
     out: wp.array(dtype=float),
 ):
     """Thread (c, row): that row of candidate c's crop (x0, y0, w, h), the pixels its feature points'
@@ -138,7 +164,7 @@ def composite_crops(
         x = cr[0] + col
         p = wp.vec3(0.0, 0.0, 0.0)
         if in_box(photo, x, y):
-            p = composite(image, rgb, mask, roff, rb, x, y)
+            p = composite(image, rgb, mask, roff, rb, x, y, sur)
         out[base + col] = p[0]
         out[base + n + col] = p[1]
         out[base + 2 * n + col] = p[2]
@@ -158,13 +184,13 @@ def feature_kernels(C: int):
         return out
 
     @wp.func
-    def weighted_cosine(f: vecC, g: vecC, g_norm: float, rarity: float) -> float:
-        """cos(f, g) x rarity; 0 where either feature vanishes."""
+    def weighted_cosine(f: vecC, g: vecC, g_norm: float, pw: PointWeights, gx: int, gy: int) -> float:
+        """cos(f, g) x gain - offset at grid cell (gx, gy); cos is 0 where either feature vanishes."""
         denom = wp.length(f) * g_norm
         cos = float(0.0)
         if denom > 1.0e-12:
             cos = wp.dot(f, g) / denom
-        return cos * rarity
+        return cos * pw.gain[gy, gx] - pw.offset[gy, gx]
 
     @wp.func
     def conv_at(
@@ -179,6 +205,7 @@ def feature_kernels(C: int):
         bias: vecC,
         ks: int,
         relu: int,
+        sur: Surround,
     ) -> vecC:
         half = ks // 2
         acc = bias
@@ -186,7 +213,7 @@ def feature_kernels(C: int):
             y = v + dy - half
             for dx in range(ks):
                 x = u + dx - half
-                p = composite(image, rgb, mask, roff, rb, x, y)
+                p = composite(image, rgb, mask, roff, rb, x, y, sur)
                 k = (dy * ks + dx) * 3
                 acc = acc + Wt[k] * p[0] + Wt[k + 1] * p[1] + Wt[k + 2] * p[2]
         return rectified(acc, relu)
@@ -206,8 +233,21 @@ def feature_kernels(C: int):
         gy, gx = wp.tid()
         half = ks // 2
         no_box = wp.vec4i(0, 0, 0, 0)
+        photo_only = Surround()
+        photo_only.use_fill = 0
         out[gy, gx] = conv_at(
-            image, dummy_rgb, dummy_mask, 0, no_box, half + stride * gx, half + stride * gy, Wt, bias, ks, relu
+            image,
+            dummy_rgb,
+            dummy_mask,
+            0,
+            no_box,
+            half + stride * gx,
+            half + stride * gy,
+            Wt,
+            bias,
+            ks,
+            relu,
+            photo_only,
         )
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -225,9 +265,10 @@ def feature_kernels(C: int):
         ks: int,
         stride: int,
         relu: int,
+        sur: Surround,
         obs_feat: wp.array2d(dtype=vecC),
         obs_norm: wp.array2d(dtype=float),
-        rarity: wp.array2d(dtype=float),
+        pw: PointWeights,
         out: wp.array(dtype=float),
     ):
         i = wp.tid()
@@ -238,8 +279,8 @@ def feature_kernels(C: int):
         if not compared:
             out[i] = value
             return
-        f = conv_at(image, rgb, mask, pix_off[c], box[c], u, v, Wt, bias, ks, relu)
-        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], rarity[gy, gx])
+        f = conv_at(image, rgb, mask, pix_off[c], box[c], u, v, Wt, bias, ks, relu, sur)
+        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy)
 
     @wp.kernel(enable_backward=False, module="unique")
     def score_features(
@@ -255,7 +296,7 @@ def feature_kernels(C: int):
         relu: int,
         obs_feat: wp.array2d(dtype=vecC),
         obs_norm: wp.array2d(dtype=float),
-        rarity: wp.array2d(dtype=float),
+        pw: PointWeights,
         out: wp.array(dtype=float),
     ):
         """score_points' values from features convolved elsewhere: candidate c's conv1 output as C
@@ -275,6 +316,6 @@ def feature_kernels(C: int):
         for ch in range(C):
             f[ch] = feat[at + ch * n]
         f = rectified(f, relu)
-        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], rarity[gy, gx])
+        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy)
 
     return vecC, observed_features, score_points, score_features

@@ -30,6 +30,7 @@ def top_alpha_mean(
     values: wp.array(dtype=wp.float32),
     offsets: wp.array(dtype=wp.int32),
     alpha: wp.float64,
+    shrink: wp.float64,
     out_score: wp.array(dtype=wp.float64),
     out_n: wp.array(dtype=wp.int32),
 ):
@@ -101,4 +102,4 @@ def top_alpha_mean(
         if v > OFF_MASK_BELOW and v > t:
             n_gt += 1
             total += wp.float64(v)
-    out_score[c] = (total + wp.float64(k - n_gt) * wp.float64(t)) / wp.float64(k)
+    out_score[c] = (total + wp.float64(k - n_gt) * wp.float64(t)) / (wp.float64(k) + shrink)

@@ -1,8 +1,9 @@
 """Upper bounds of candidates' scores from their silhouettes (the pruned search, kernels/bound.py).
 
-bound(c) = top-α mean of the photo's rarity at c's silhouette feature points >= score(c),
-because every point's score is cos x rarity with cos <= 1. Computing it costs one ray per
-feature point (1/stride² of a render) and no features, so the search can bound every
+bound(c) = top-α reduction of the photo's ceiling map at c's silhouette feature points >= score(c),
+because every point's value is cos x gain - offset with cos <= 1 and gain >= 0, so at most
+ceiling = gain - offset (the rarity, for the thesis's score; perch_warp.score_terms). Computing it
+costs one ray per feature point (1/stride² of a render) and no features, so the search can bound every
 candidate, score them best bound first, and stop once no bound reaches the k-th best score:
 the same top-k as scoring all of them (thesis §5.1 asks for pruning and prioritisation).
 """
@@ -29,11 +30,12 @@ def silhouette_points(
     t_m2c_m: np.ndarray,
     boxes: np.ndarray,
     gboxes: np.ndarray,
-    rarity: wp.array,
+    ceiling: wp.array,
     kernel_size: int,
     stride: int,
 ) -> tuple[wp.array, wp.array]:
-    """Rarity at each candidate's silhouette feature points (NOT_ON_MASK off it, 0 beyond the photo)
+    """The ceiling map (each point's largest possible value) at each candidate's silhouette feature
+    points (NOT_ON_MASK off it, 0 beyond the photo)
     and the flat offsets (B + 1,), device arrays in the layout of FeatureScorer.score_points.
     Poses are model-to-camera (R (B, 3, 3), t (B, 3) metres); boxes are pixels, gboxes feature cells."""
     gboxes = np.asarray(gboxes, dtype=np.int32)
@@ -52,7 +54,7 @@ def silhouette_points(
             wp.launch(
                 rarity_at_hits,
                 dim=n_pts,
-                inputs=[hits, gbox_arr, offsets, len(gboxes), kernel_size, stride, rarity],
+                inputs=[hits, gbox_arr, offsets, len(gboxes), kernel_size, stride, ceiling],
                 outputs=[out],
             )
             return out, offsets
@@ -68,7 +70,7 @@ def silhouette_points(
                 len(gboxes),
                 kernel_size,
                 stride,
-                rarity,
+                ceiling,
             ],
             outputs=[out],
         )
@@ -82,15 +84,16 @@ def silhouette_bounds(
     t_m2c_m: np.ndarray,
     boxes: np.ndarray,
     gboxes: np.ndarray,
-    rarity: wp.array,
+    ceiling: wp.array,
     kernel_size: int,
     stride: int,
     alpha: float,
+    shrink: float = 0.0,
 ) -> np.ndarray:
     """Upper bound (B,) float64 of each candidate's score; -inf where no feature point is on its
     silhouette (its score is then -inf too)."""
-    vals, offsets = silhouette_points(renderer, camera, R_m2c, t_m2c_m, boxes, gboxes, rarity, kernel_size, stride)
-    return top_alpha_mean_device(vals, offsets, alpha)[0].numpy()
+    vals, offsets = silhouette_points(renderer, camera, R_m2c, t_m2c_m, boxes, gboxes, ceiling, kernel_size, stride)
+    return top_alpha_mean_device(vals, offsets, alpha, shrink)[0].numpy()
 
 
 def next_to_score(bounds_sorted: np.ndarray, start: int, threshold: float) -> int:

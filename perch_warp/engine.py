@@ -24,13 +24,15 @@ from .camera import Camera
 from .errors import PerchError
 from .features import FeatureWeights
 from .image import check_rgb
+from .kernels.features import PointWeights
 from .mesh import ObjectMesh
-from .rarity import rarity as rarity_fn
+from .rarity import rarity_and_labels
 from .refine import cell_space
 from .render import MIN_DEPTH_M, RENDERERS, BoxProjector, MeshRenderer, auto_renderer
 from .result import Candidate, Result
-from .score import CONVS, FeatureScorer, auto_conv, grid_boxes, grid_shape, top_alpha_mean_device
-from .search_space import SearchSpace
+from .score import CONVS, FeatureScorer, auto_conv, grid_boxes, grid_shape, point_weights, top_alpha_mean_device
+from .score_terms import background_offset, parse_score
+from .search_space import FULL_CIRCLE, SearchSpace
 from .table import RestingPose, Table, model_to_camera, pose_matrix
 
 SEARCHES = ("auto", "exhaustive", "pruned", "coarse-to-fine")
@@ -82,8 +84,12 @@ class EngineConfig:
     # each candidate's composited crop; the same values up to float rounding), or "auto": torch on the
     # CPU (measured faster there), warp on a GPU (torch is not measured there).
     conv: str = "auto"
+    # What a candidate's score is made of (perch_warp.score_terms): a name ("thesis": the thesis's
+    # formula) or terms over the thesis's, e.g. "surround=fill,shrink=16".
+    score: str = "thesis"
 
     def __post_init__(self) -> None:
+        parse_score(self.score)  # fails early, with the terms it knows
         if not (0.0 < self.alpha <= 1.0) or not math.isfinite(self.alpha):
             raise PerchError(f"alpha (occlusion limit) must be in (0, 1], got {self.alpha}")
         if self.stride < 1:
@@ -137,12 +143,15 @@ class _Poses:
 
 @dataclass
 class _Photo:
-    """One photo on the device: image, feature map, feature norms and rarity on the feature grid."""
+    """One photo on the device: image, feature map, feature norms, and on the feature grid the
+    maps kernel #2 weighs a point's cosine by (gain = rarity, offset) and their ceiling = gain - offset,
+    each point's largest possible value (the pruned search's bound)."""
 
     image: wp.array
     obs: wp.array
     norm: wp.array
-    rarity: wp.array
+    weights: PointWeights
+    ceiling: wp.array
     rows: int
     cols: int
 
@@ -185,7 +194,10 @@ class Engine:
             mesh, self.device, "bvh" if self.config.renderer == "auto" else self.config.renderer
         )
         conv = self.config.conv if self.config.conv != "auto" else auto_conv(self.device)
-        self.scorer = FeatureScorer(weights, self.device, self.config.stride, self.config.relu, conv)
+        self.score_name, self.terms = parse_score(self.config.score)  # perch_warp.score_terms
+        self.scorer = FeatureScorer(
+            weights, self.device, self.config.stride, self.config.relu, conv, surround=self.terms.surround
+        )
         self.scorer.warm_up()
         # Build now: compile time is not a search stage's.
         for module in ("render", "raster", "boxes", "reduce", "bound"):
@@ -212,8 +224,13 @@ class Engine:
         resting: RestingPose,
         space: SearchSpace,
         progress: bool = False,
+        probe: tuple[float, float, float] | None = None,
     ) -> Result:
-        """Best (x, y, yaw) of the object in the photo; see the module doc for the stages."""
+        """Best (x, y, yaw) of the object in the photo; see the module doc for the stages.
+
+        `probe` (x_m, y_m, yaw_rad, table frame), for analysis only: after the search, the best pose
+        and score within that pose's cell (one grid step either side at the refinement's resolution,
+        not cut to the space) on the same photo, in info["probe"]; it never changes the answer."""
         cfg = self.config
         timings: dict[str, float] = {}
         image_rgb, camera = self._begin(image_rgb, camera)
@@ -247,6 +264,8 @@ class Engine:
             top = [(float(x[n]), float(y[n]), float(yaw[n]), float(scores[i])) for n, i in enumerate(order)]
             if cfg.refine:
                 top, extra["refine"] = self._refine(photo, camera, table, resting, space, top, timings)
+            if probe is not None:
+                extra["probe"] = self._probe(photo, camera, table, resting, space, probe)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _batched).
             wall_s = time.perf_counter() - t_start
         finally:
@@ -270,6 +289,7 @@ class Engine:
                 "alpha": cfg.alpha,
                 "clusters": cfg.clusters,
                 "seed": cfg.seed,
+                "score": self.score_name,
                 "search": self.search,
                 "search_option": cfg.search,  # as asked: "auto" or the search itself
                 **renderer_info,
@@ -297,17 +317,7 @@ class Engine:
         inner: dict[str, float] = {}
         x0, y0, yaw0, s0 = top[0]
         cell = cell_space(space, x0, y0, yaw0, cfg.refine_xy_m, cfg.refine_yaw_rad, cfg.refine_cells)
-        # The same best either way; after coarse-to-fine, the one "auto" picks for the device.
-        search = self.search if self.search in ("exhaustive", "pruned") else _auto_search(self.device)
-        if search == "pruned":
-            scores, _ = self._pruned(photo, camera, table, resting, cell, inner)
-        else:
-            scores = self._score_poses(photo, camera, table, resting, _Poses.of_space(cell), inner)
-        i = int(np.argmax(scores))  # the first of equal maxima
-        (x_i,), (y_i,), (yaw_i,) = cell.at(np.array([i]))
-        # A cell may reach below 0 on the full circle: the same poses as below 2π, reported there.
-        yaw_i = float(yaw_i) % (2 * math.pi) if space.full_circle else float(yaw_i)
-        best = (float(x_i), float(y_i), yaw_i, float(scores[i]))
+        best, scores, search = self._best_in(photo, camera, table, resting, cell, space.full_circle, inner)
         info = {
             "step_xy_m": cell.xy_step_m,
             "step_yaw_deg": math.degrees(cell.yaw_step_rad),
@@ -326,6 +336,51 @@ class Engine:
             return abs(c[0] - best[0]) < 1e-9 and abs(c[1] - best[1]) < 1e-9 and abs(c[2] - best[2]) < 1e-9
 
         return [best, *(c for c in top[1:] if not same(c))], info
+
+    def _best_in(self, photo, camera, table, resting, cell: SearchSpace, wrap: bool, timings: dict):
+        """The best pose (x_m, y_m, yaw_rad, score) of a small space searched whole (pruned or exhaustive:
+        the same best; after coarse-to-fine, the one "auto" picks for the device), its scores and the search."""
+        search = self.search if self.search in ("exhaustive", "pruned") else _auto_search(self.device)
+        if search == "pruned":
+            scores, _ = self._pruned(photo, camera, table, resting, cell, timings)
+        else:
+            scores = self._score_poses(photo, camera, table, resting, _Poses.of_space(cell), timings)
+        i = int(np.argmax(scores))  # the first of equal maxima
+        (x_i,), (y_i,), (yaw_i,) = cell.at(np.array([i]))
+        # A cell may reach below 0 on the full circle: the same poses as below 2π, reported there.
+        yaw_i = float(yaw_i) % (2 * math.pi) if wrap else float(yaw_i)
+        return (float(x_i), float(y_i), yaw_i, float(scores[i])), scores, search
+
+    def _probe(self, photo, camera, table, resting, space: SearchSpace, pose: tuple[float, float, float]) -> dict:
+        """The best of pose's cell at the refinement's resolution (Engine.estimate's `probe`); the search's
+        counters are left as they were."""
+        cfg = self.config
+        counters = (self._n_batches, self._n_rays, self._n_bound_rays)
+        everywhere = SearchSpace((-1e6, 1e6), (-1e6, 1e6), space.xy_step_m, FULL_CIRCLE, space.yaw_step_rad)
+        x, y, yaw = (float(v) for v in pose)
+        cell = cell_space(everywhere, x, y, yaw, cfg.refine_xy_m, cfg.refine_yaw_rad, cfg.refine_cells)
+        (bx, by, byaw, score), scores, _ = self._best_in(photo, camera, table, resting, cell, True, {})
+        self._n_batches, self._n_rays, self._n_bound_rays = counters
+        return {"x_m": bx, "y_m": by, "yaw_rad": byaw, "score": score, "candidates": len(cell), "at": [x, y, yaw]}
+
+    def score(
+        self,
+        image_rgb: np.ndarray,
+        camera: Camera,
+        table: Table,
+        resting: RestingPose,
+        x_m: np.ndarray,
+        y_m: np.ndarray,
+        yaw_rad: np.ndarray,
+    ) -> np.ndarray:
+        """Scores (N,) float64 of the given table-frame poses (metres, radians) in the photo; -inf where
+        a pose shows no feature point. The photo's features and rarity are computed for this call."""
+        timings: dict[str, float] = {}
+        image_rgb, camera = self._begin(image_rgb, camera)
+        self._pick_renderer(camera, table, resting, SearchSpace((0.0, 0.0), (0.0, 0.0)))
+        photo = self._photo(image_rgb, camera, timings)
+        x, y, yaw = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in (x_m, y_m, yaw_rad))
+        return self._score_poses(photo, camera, table, resting, _Poses.of_arrays(x, y, yaw), timings)
 
     def bounds_and_scores(
         self, image_rgb: np.ndarray, camera: Camera, table: Table, resting: RestingPose, space: SearchSpace
@@ -384,10 +439,17 @@ class Engine:
         obs = self.scorer.observed_features(image)
         t = self._lap(timings, "photo_features", t)
         feats = obs.numpy().reshape(rows * cols, -1)
-        rar = rarity_fn(feats, cfg.clusters, cfg.seed).reshape(rows, cols)
+        terms = self.terms
+        rar, labels = rarity_and_labels(feats, cfg.clusters, cfg.seed, terms.rarity, terms.inits)
+        offset = background_offset(feats, labels, rar, terms.background)
+        ceiling = (rar - offset).reshape(rows, cols)
         norms = np.linalg.norm(feats.astype(np.float64), axis=1).reshape(rows, cols).astype(np.float32)
         with wp.ScopedDevice(self.device):
-            photo = _Photo(image, obs, wp.array(norms, dtype=float), wp.array(rar, dtype=float), rows, cols)
+            gain = wp.array(rar.reshape(rows, cols), dtype=float)
+            pw = point_weights(gain, wp.array(offset.reshape(rows, cols), dtype=float))
+            # The thesis's ceiling is the rarity itself: the same array, so its bounds stay bit for bit.
+            ceil = gain if terms.background == 0.0 else wp.array(ceiling, dtype=float)
+            photo = _Photo(image, obs, wp.array(norms, dtype=float), pw, ceil, rows, cols)
         self._lap(timings, "rarity", t)
         return photo
 
@@ -511,10 +573,10 @@ class Engine:
         t = time.perf_counter()
         batch = self.renderer.render(camera, R[idx], tr[idx], boxes[idx])
         t = self._lap(laps, "render", t)
-        vals, pt_off = self.scorer.score_points(photo.image, batch, gboxes[idx], photo.obs, photo.norm, photo.rarity)
+        vals, pt_off = self.scorer.score_points(photo.image, batch, gboxes[idx], photo.obs, photo.norm, photo.weights)
         t = self._lap(laps, "features_score", t)
         # The same kernel on every device, so CPU and GPU runs take the same path to a score.
-        batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha)
+        batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha, self.terms.shrink)
         t = self._lap(laps, "reduction", t)
         out = batch_scores.numpy()  # one float per candidate, not every feature point
         self._lap(laps, "transfer", t)
@@ -531,10 +593,11 @@ class Engine:
             tr[idx],
             boxes[idx],
             gboxes[idx],
-            photo.rarity,
+            photo.ceiling,
             self.weights.kernel_size,
             self.config.stride,
             self.config.alpha,
+            self.terms.shrink,
         )
         self._lap(laps, "bound", t)
         return out, laps

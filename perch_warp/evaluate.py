@@ -252,7 +252,10 @@ class EngineEstimator:
 
     def __call__(self, target: Target, image_rgb, camera, table, resting, space) -> Estimate:
         self.prepare(target.obj_id)
-        res = self._engines[target.obj_id].estimate(image_rgb, camera, table, resting, space, progress=False)
+        engine = self._engines[target.obj_id]
+        # Diagnostics only: the ground truth's cell is scored after the search, on the same photo.
+        _, xg, yg, yawg = decompose_on_table(table, target.R_gt, target.t_gt_m)
+        res = engine.estimate(image_rgb, camera, table, resting, space, progress=False, probe=(xg, yg, yawg))
         T = np.asarray(res.T_m2c, dtype=np.float64)
         details = {
             "n_candidates": int(res.n_candidates),
@@ -263,7 +266,37 @@ class EngineEstimator:
         }
         if "refine" in res.info:  # where the refinement started (the grid's best) and how far it went
             details["refine"] = res.info["refine"]
+        details["probe"] = res.info["probe"]
+        details["silhouette"] = silhouette_points(engine, camera, T)
         return Estimate(T[:3, :3], T[:3, 3], float(res.score), details)
+
+
+def silhouette_points(engine, camera: Camera, T_m2c: np.ndarray) -> dict:
+    """A pose's silhouette on the engine's feature grid: its feature points (window centres on the
+    rendered mask, inside the photo) and the share of them at the edge (whose window is not wholly on
+    the mask: those compared with windows composited with the photo)."""
+    from scipy.ndimage import binary_erosion
+
+    _, mask = engine.render(camera, T_m2c)
+    ks, s = engine.weights.kernel_size, engine.config.stride
+    half = ks // 2
+    inner = binary_erosion(mask, np.ones((ks, ks), bool), border_value=0)
+    centres = np.zeros_like(mask)
+    centres[half : camera.height - half : s, half : camera.width - half : s] = True
+    n = int((mask & centres).sum())
+    edge = int((mask & centres & ~inner).sum())
+    return {"points": n, "edge_share": edge / n if n else float("nan")}
+
+
+def miss_class(adds_mm: float, score: float, probe_score: float | None) -> str:
+    """ "ok" below 2 cm ADD-S; else a "search miss" when the ground truth's cell scores higher than the
+    answer (the score prefers the truth, the search did not find it), else a "score miss" (the score
+    itself prefers the wrong place); "" without a probe."""
+    if adds_mm < 1000.0 * ADDS_THRESHOLD_M:
+        return "ok"
+    if probe_score is None or not np.isfinite(probe_score):
+        return ""
+    return "search miss" if probe_score > score + 1e-6 else "score miss"
 
 
 def visible_table_space(
@@ -635,13 +668,29 @@ def compute_errors(selection: Selection, done: dict, tables: TableCache, geometr
                     "gt_in_region": d.details.get("gt_in_region"),
                     "n_candidates": d.details.get("n_candidates"),
                     "n_evaluated": d.details.get("n_evaluated"),
+                    **_diagnostics(d),
                     "R_est": d.R,
                     "t_est_m": d.t_m,
                     "R_gt": t.R_gt,
                     "t_gt_m": t.t_gt_m,
                 }
             )
+    for r in rows:
+        r["miss"] = miss_class(r["adds_mm"], r["score"], r["gt_cell_score"])
     return rows
+
+
+def _diagnostics(d: Done) -> dict:
+    """The ground truth's cell (its best score, the answer's margin over it) and the answer's silhouette."""
+    probe = d.details.get("probe") or {}
+    sil = d.details.get("silhouette") or {}
+    cell = probe.get("score")
+    return {
+        "gt_cell_score": cell,
+        "margin": d.score - cell if cell is not None else None,
+        "est_points": sil.get("points"),
+        "est_edge_share": sil.get("edge_share"),
+    }
 
 
 _PER_TARGET_COLUMNS = [
@@ -667,6 +716,11 @@ _PER_TARGET_COLUMNS = [
     "gt_in_region",
     "n_candidates",
     "n_evaluated",
+    "gt_cell_score",
+    "margin",
+    "miss",
+    "est_points",
+    "est_edge_share",
 ]
 
 
@@ -688,6 +742,7 @@ def write_per_target(path: Path, rows: list[dict]) -> None:
 
 def _metrics(rows: list[dict]) -> dict:
     adds_m = np.array([r["adds_mm"] for r in rows], dtype=np.float64) / 1000.0
+    add_m = np.array([r["add_mm"] for r in rows], dtype=np.float64) / 1000.0
     te = np.array([r["te_mm"] for r in rows], dtype=np.float64)
     yaw = np.array([r["yaw_err_deg"] for r in rows], dtype=np.float64)
     times = np.array([r["time_s"] for r in rows], dtype=np.float64)
@@ -701,6 +756,9 @@ def _metrics(rows: list[dict]) -> dict:
         "auc": pose_error.auc(adds_m, AUC_MAX_THRESHOLD_M),
         "auc_posecnn": pose_error.auc_posecnn(adds_m, AUC_MAX_THRESHOLD_M),
         "adds_below_2cm_pct": pose_error.accuracy_below(adds_m, ADDS_THRESHOLD_M),
+        "auc_add": pose_error.auc(add_m, AUC_MAX_THRESHOLD_M),
+        "te_below_1cm_pct": pose_error.accuracy_below(te / 1000.0, 0.01),
+        "misses": {c: sum(1 for r in rows if r.get("miss") == c) for c in ("search miss", "score miss")},
         "mean_adds_mm": stat(np.mean, adds_m * 1000.0),
         "median_adds_mm": stat(np.median, adds_m * 1000.0),
         "mean_te_mm": stat(np.mean, te),
@@ -833,6 +891,17 @@ def format_table(summary: dict) -> str:
     skipped = summary.get("skipped_no_model") or {}
     if skipped:
         notes.append(f"Skipped (no mesh): {sum(skipped.values())} instances of objects {', '.join(skipped)}.")
+    if p:
+        notes.append(
+            f"Pooled ADD AUC {fmt(p.get('auc_add'), '.2f')}; translation error < 1 cm: "
+            f"{fmt(p.get('te_below_1cm_pct'), '.2f')} %."
+        )
+        misses = p.get("misses") or {}
+        if any(misses.values()):
+            notes.append(
+                f"Misses (>= 2 cm): {misses.get('score miss', 0)} score misses (the answer outscores the ground "
+                f"truth's cell), {misses.get('search miss', 0)} search misses (the truth's cell scores higher)."
+            )
     outside = p.get("gt_outside_region") if p else 0
     if outside:
         notes.append(f"{outside} targets lie outside their search region.")

@@ -5,25 +5,33 @@ from __future__ import annotations
 import numpy as np
 
 
-def rarity_from_labels(labels: np.ndarray, n_clusters: int) -> np.ndarray:
-    """1 - (frequency of the point's cluster / frequency of the most frequent cluster).
-
-    The commonest appearance weighs 0, the rarest close to 1.
-    """
+def rarity_from_labels(labels: np.ndarray, n_clusters: int, mode: str = "max") -> np.ndarray:
+    """1 - (frequency of the point's cluster / frequency of the most frequent cluster) for mode
+    "max" (the thesis's: the commonest appearance weighs 0, the rarest close to 1), or
+    1 - (frequency / number of points) for mode "total" (the commonest weighs what it leaves)."""
     counts = np.bincount(labels, minlength=n_clusters).astype(np.float64)
-    return (1.0 - counts[labels] / counts.max()).astype(np.float32)
+    norm = counts.max() if mode == "max" else counts.sum()
+    return (1.0 - counts[labels] / norm).astype(np.float32)
 
 
-def kmeans_labels(features: np.ndarray, n_clusters: int = 20, seed: int = 0) -> np.ndarray:
-    """k-means cluster of each feature vector (N, C); deterministic for a seed."""
+def kmeans_labels(features: np.ndarray, n_clusters: int = 20, seed: int = 0, inits: int = 1) -> np.ndarray:
+    """k-means cluster of each feature vector (N, C), the best of `inits` initialisations;
+    deterministic for a seed."""
     from sklearn.cluster import KMeans
 
     n_clusters = int(min(n_clusters, len(features)))
-    km = KMeans(n_clusters=n_clusters, n_init=1, random_state=seed)
+    km = KMeans(n_clusters=n_clusters, n_init=inits, random_state=seed)
     return km.fit_predict(np.asarray(features, dtype=np.float32)).astype(np.int64)
 
 
-def rarity(features: np.ndarray, n_clusters: int = 20, seed: int = 0) -> np.ndarray:
+def rarity(features: np.ndarray, n_clusters: int = 20, seed: int = 0, mode: str = "max", inits: int = 1) -> np.ndarray:
     """Rarity in [0, 1) of every feature vector (N, C) of one photo."""
-    labels = kmeans_labels(features, n_clusters, seed)
-    return rarity_from_labels(labels, int(labels.max()) + 1)
+    return rarity_and_labels(features, n_clusters, seed, mode, inits)[0]
+
+
+def rarity_and_labels(
+    features: np.ndarray, n_clusters: int = 20, seed: int = 0, mode: str = "max", inits: int = 1
+) -> tuple[np.ndarray, np.ndarray]:
+    """(rarity (N,), k-means labels (N,)) of the feature vectors (N, C)."""
+    labels = kmeans_labels(features, n_clusters, seed, inits)
+    return rarity_from_labels(labels, int(labels.max()) + 1, mode), labels

@@ -11,7 +11,7 @@ import warp as wp
 
 from .errors import PerchError
 from .features import FeatureWeights
-from .kernels.features import NOT_ON_MASK, composite_crops, feature_kernels
+from .kernels.features import NOT_ON_MASK, PointWeights, Surround, composite_crops, feature_kernels
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
 from .render import RenderedBatch, flat_offsets
 
@@ -64,9 +64,19 @@ def cudnn_full_precision():
 class FeatureScorer:
     """Conv1 weights on a device, and the kernels specialised for their channel count."""
 
-    def __init__(self, weights: FeatureWeights, device: str, stride: int, relu: bool = False, conv: str = "warp"):
+    def __init__(
+        self,
+        weights: FeatureWeights,
+        device: str,
+        stride: int,
+        relu: bool = False,
+        conv: str = "warp",
+        surround: str = "photo",
+    ):
         if conv not in ("warp", "torch"):
             raise PerchError(f"conv must be warp or torch, got {conv!r}")
+        if surround not in ("photo", "fill"):
+            raise PerchError(f"surround must be photo or fill, got {surround!r}")
         self.device = device
         self.conv = conv
         self.ks = weights.kernel_size
@@ -79,6 +89,10 @@ class FeatureScorer:
             self.bias = self.vecC(*b.tolist())
             self._dummy_rgb = wp.zeros(1, dtype=wp.vec3)
             self._dummy_mask = wp.zeros(1, dtype=wp.uint8)
+        # Beyond the mask a window sees the photo, or the preprocessing mean: conv1's zero input.
+        self.surround = Surround()
+        self.surround.use_fill = int(surround == "fill")
+        self.surround.fill = wp.vec3(*(float(m) for m in weights.mean))
         self._buffers: queue.SimpleQueue = queue.SimpleQueue()  # free buffer sets of the torch form
         if conv == "torch":
             import torch
@@ -109,7 +123,7 @@ class FeatureScorer:
         image = wp.zeros((ks, ks), dtype=wp.vec3, device=self.device)
         obs = self.observed_features(image)
         with wp.ScopedDevice(self.device):
-            one = wp.zeros((1, 1), dtype=float)
+            one = point_weights(wp.zeros((1, 1), dtype=float))
             batch = RenderedBatch(
                 wp.zeros(1, dtype=wp.vec3),
                 wp.zeros(1, dtype=wp.uint8),
@@ -117,7 +131,7 @@ class FeatureScorer:
                 wp.array(np.array([0, 1], np.int32), dtype=wp.int32),
                 1,
             )
-        self.score_points(image, batch, np.array([[0, 0, 1, 1]], np.int32), obs, one, one)
+        self.score_points(image, batch, np.array([[0, 0, 1, 1]], np.int32), obs, one.gain, one)
         wp.synchronize_device(self.device)
 
     def image_to_device(self, image_rgb: np.ndarray) -> wp.array:
@@ -143,9 +157,10 @@ class FeatureScorer:
         gboxes: np.ndarray,
         obs_feat: wp.array,
         obs_norm: wp.array,
-        rarity: wp.array,
+        pw: PointWeights,
     ) -> tuple[wp.array, wp.array]:
-        """similarity x rarity at every feature-grid point of each candidate's box and the flat
+        """similarity x gain - offset (pw: the photo's maps, `point_weights`) at every feature-grid
+        point of each candidate's box and the flat
         offsets (B + 1,) int32 of each candidate's points, both device arrays (they stay there
         for `top_alpha_mean_device`); off-mask points hold NOT_ON_MASK."""
         gboxes = np.asarray(gboxes, dtype=np.int32)
@@ -162,7 +177,7 @@ class FeatureScorer:
                         self.k_score_features,
                         dim=n_pts,
                         inputs=[feat, batch.mask, batch.pix_off, batch.box, wp.array(gboxes, dtype=wp.vec4i)]
-                        + [offsets, batch.n, self.ks, self.stride, self.relu, obs_feat, obs_norm, rarity],
+                        + [offsets, batch.n, self.ks, self.stride, self.relu, obs_feat, obs_norm, pw],
                         outputs=[out],
                     )
                 finally:
@@ -185,9 +200,10 @@ class FeatureScorer:
                     self.ks,
                     self.stride,
                     self.relu,
+                    self.surround,
                     obs_feat,
                     obs_norm,
-                    rarity,
+                    pw,
                 ],
                 outputs=[out],
             )
@@ -211,7 +227,7 @@ class FeatureScorer:
             composite_crops,
             dim=(len(crops), int(crops[:, 3].max(initial=0))),
             inputs=[image, batch.rgb, batch.mask, batch.pix_off, batch.box]
-            + [wp.array(crops, dtype=wp.vec4i), wp.array(crop_off, dtype=wp.int32)],
+            + [wp.array(crops, dtype=wp.vec4i), wp.array(crop_off, dtype=wp.int32), self.surround],
             outputs=[flat],
         )
         f_t, flat_t = wp.to_torch(feat), wp.to_torch(flat)
@@ -234,6 +250,14 @@ class FeatureScorer:
             return self._buffers.get_nowait()
         except queue.Empty:
             return {}
+
+
+def point_weights(gain: wp.array, offset: wp.array | None = None) -> PointWeights:
+    """The photo's per-point maps for kernel #2: gain (rarity) and offset (zeros when None), on gain's device."""
+    pw = PointWeights()
+    pw.gain = gain
+    pw.offset = offset if offset is not None else wp.zeros(gain.shape, dtype=float, device=gain.device)
+    return pw
 
 
 def _grown(bufs: dict, name: str, n: int, device: str) -> wp.array:
@@ -272,7 +296,9 @@ def grid_boxes(boxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:
     return out
 
 
-def top_alpha_mean_device(values: wp.array, offsets: wp.array, alpha: float) -> tuple[wp.array, wp.array]:
+def top_alpha_mean_device(
+    values: wp.array, offsets: wp.array, alpha: float, shrink: float = 0.0
+) -> tuple[wp.array, wp.array]:
     """`top_alpha_mean` on the values' device (kernels/reduce.py): scores (B,) float64 and n (B,) int32,
     device arrays, so that one number per candidate crosses to the host instead of every point."""
     n_cand = offsets.shape[0] - 1
@@ -280,13 +306,20 @@ def top_alpha_mean_device(values: wp.array, offsets: wp.array, alpha: float) -> 
         scores = wp.empty(n_cand, dtype=wp.float64)
         n = wp.empty(n_cand, dtype=wp.int32)
         if n_cand > 0:
-            wp.launch(top_alpha_mean_kernel, dim=n_cand, inputs=[values, offsets, float(alpha)], outputs=[scores, n])
+            wp.launch(
+                top_alpha_mean_kernel,
+                dim=n_cand,
+                inputs=[values, offsets, float(alpha), float(shrink)],
+                outputs=[scores, n],
+            )
     return scores, n
 
 
-def top_alpha_mean(values: np.ndarray, offsets: np.ndarray, alpha: float) -> tuple[np.ndarray, np.ndarray]:
-    """Per candidate: mean of the top ceil(α n) of its n on-mask values, and n (the reference
-    for `top_alpha_mean_device`, which the engine runs).
+def top_alpha_mean(
+    values: np.ndarray, offsets: np.ndarray, alpha: float, shrink: float = 0.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per candidate: mean of the top k = ceil(α n) of its n on-mask values (their sum over k + shrink),
+    and n (the reference for `top_alpha_mean_device`, which the engine runs).
 
     `values` is flat with candidate c at [offsets[c], offsets[c+1]); entries at or below
     NOT_ON_MASK / 2 are off the mask. Candidates with no on-mask point score -inf.
@@ -304,7 +337,7 @@ def top_alpha_mean(values: np.ndarray, offsets: np.ndarray, alpha: float) -> tup
     M = -np.sort(-M, axis=1)
     k = np.maximum(1, np.ceil(alpha * n - 1e-9)).astype(np.int64)
     cs = np.cumsum(np.where(np.isfinite(M), M, 0.0), axis=1)
-    scores = cs[np.arange(B), np.minimum(k, M.shape[1]) - 1] / k
+    scores = cs[np.arange(B), np.minimum(k, M.shape[1]) - 1] / (k + shrink)
     scores[n == 0] = -np.inf
     return scores, n
 

@@ -12,6 +12,7 @@ from perch_warp.bound import BOUND_SLACK, next_to_score, silhouette_bounds, silh
 from perch_warp.demo import demo_scene
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean
+from perch_warp.score_terms import parse_score
 from perch_warp.search_space import SearchSpace
 
 
@@ -52,16 +53,16 @@ def test_points_are_the_rendered_masks_feature_points_with_their_rarity(scene, r
     space = SearchSpace((-0.3, 0.3), (-0.3, 0.3), 0.15, (0, 2 * math.pi), math.radians(60))
     photo, R, t, boxes, gboxes = _candidates(engine, scene, space, scene.camera)
     ks, s = random_weights.kernel_size, engine.config.stride
-    vals, off = silhouette_points(engine.renderer, scene.camera, R, t, boxes, gboxes, photo.rarity, ks, s)
+    vals, off = silhouette_points(engine.renderer, scene.camera, R, t, boxes, gboxes, photo.ceiling, ks, s)
     batch = engine.renderer.render(scene.camera, R, t, boxes)
-    svals, soff = engine.scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.rarity)
+    svals, soff = engine.scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.weights)
     v, sv = vals.numpy(), svals.numpy()
     assert np.array_equal(off.numpy(), soff.numpy())
     on = sv != NOT_ON_MASK
     assert np.array_equal(v != NOT_ON_MASK, on) and on.sum() > 100 and (~on).sum() > 100
 
     # Independent of both kernels: each point's grid cell, from the boxes alone.
-    rar = photo.rarity.numpy()
+    rar = photo.weights.gain.numpy()
     rows, cols = grid_shape(scene.camera.width, scene.camera.height, ks, s)
     want, outside = [], []
     for g in gboxes:
@@ -79,9 +80,9 @@ def test_bound_is_never_below_the_score(scene, random_weights, renderer):
     engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(renderer=renderer))
     photo, R, t, boxes, gboxes = _candidates(engine, scene, _space(scene), scene.camera)
     ks, s, alpha = random_weights.kernel_size, engine.config.stride, engine.config.alpha
-    bounds = silhouette_bounds(engine.renderer, scene.camera, R, t, boxes, gboxes, photo.rarity, ks, s, alpha)
+    bounds = silhouette_bounds(engine.renderer, scene.camera, R, t, boxes, gboxes, photo.ceiling, ks, s, alpha)
     batch = engine.renderer.render(scene.camera, R, t, boxes)
-    vals, off = engine.scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.rarity)
+    vals, off = engine.scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.weights)
     scores, _ = top_alpha_mean(vals.numpy(), off.numpy(), alpha)
     assert len(bounds) > 100 and np.all(np.isfinite(bounds) == np.isfinite(scores))
     ok = np.isfinite(scores)
@@ -198,3 +199,38 @@ def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(sce
     # One update per round: a candidate ruled out is counted in the round that rules it out, none at the end.
     assert len(bar.seen) == r.info["rounds"]
     assert bar.seen[-1] == bar.total
+
+
+@pytest.mark.parametrize(
+    "score",
+    ["surround=fill", "background=0.7", "shrink=12", "rarity=total,inits=2", "surround=fill,background=0.5,shrink=8"],
+)
+def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
+    """bound >= score for every candidate of random poses, whatever the score's terms (score_terms'
+    proof: value <= gain - offset pointwise, the same k and divisor)."""
+    space = _space(scene, half=0.06, step=0.03, yaw_step_deg=60.0)
+    engine = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(score=score))
+    out = engine.bounds_and_scores(scene.image, scene.camera, scene.table, scene.resting, space)
+    live = np.isfinite(out["score"])
+    assert live.sum() > 10
+    assert np.all(out["bound"][live] >= out["score"][live] - BOUND_SLACK)
+    # Not vacuous: some bound is close to its score.
+    assert np.min(out["bound"][live] - out["score"][live]) < 0.5
+
+
+def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights):
+    """The pruned search stays exact when the score has every new term: the same top-k poses and scores."""
+    space = _space(scene)
+    score = "surround=fill,background=0.5,shrink=8"
+
+    def run(search):
+        config = EngineConfig(score=score, search=search, batch_pixels=20000, cpu_threads=1, refine=False)
+        return Engine(scene.mesh, caffe_weights, DEVICE, config).estimate(
+            scene.image, scene.camera, scene.table, scene.resting, space
+        )
+
+    runs = {s: run(s) for s in ("exhaustive", "pruned")}
+    a, b = runs["exhaustive"], runs["pruned"]
+    assert [(c.x_m, c.y_m, c.yaw_rad) for c in a.top_k] == [(c.x_m, c.y_m, c.yaw_rad) for c in b.top_k]
+    assert np.allclose([c.score for c in a.top_k], [c.score for c in b.top_k], rtol=0, atol=1e-9)
+    assert b.info["scored"] < len(space) and a.info["score"] == b.info["score"] == parse_score(score)[0]

@@ -10,7 +10,7 @@ from perch_warp.kernels.features import NOT_ON_MASK
 from perch_warp.errors import PerchError
 from perch_warp.features import PREPROCESSING, FeatureWeights, load_npz
 from perch_warp.render import RenderedBatch
-from perch_warp.score import FeatureScorer, grid_boxes, grid_shape
+from perch_warp.score import FeatureScorer, grid_boxes, grid_shape, point_weights
 
 
 def _torch_features(image_u8: np.ndarray, w: FeatureWeights, stride: int) -> np.ndarray:
@@ -46,8 +46,10 @@ def test_caffe_preprocessing_is_rgb255_minus_mean(caffe_weights):
     assert np.allclose(got[0, 0], ref, rtol=1e-4, atol=1e-2)
 
 
-def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, stride, rarity):
-    """Reference: composite each window, convolve in float64, cosine with the photo's feature, times rarity."""
+def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, stride, rarity, offset=None, fill=False):
+    """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
+    in float64, cosine with the photo's feature, times rarity, minus offset."""
+    offset = np.zeros_like(rarity) if offset is None else offset
     norm = (img.astype(np.float64) / 255.0 - np.array(w.mean)) / np.array(w.std)
     W = w.weight.astype(np.float64)
     half = 5
@@ -58,6 +60,8 @@ def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, str
         crgb = rgb[pix_off[c] : pix_off[c + 1]].reshape(bh, bw, 3)
         cmask = mask[pix_off[c] : pix_off[c + 1]].reshape(bh, bw).astype(bool)
         comp = img.astype(np.float64) / 255.0
+        if fill:
+            comp[:] = np.array(w.mean)
         for yy, xx in zip(*np.nonzero(cmask), strict=True):
             if 0 <= y0 + yy < comp.shape[0] and 0 <= x0 + xx < comp.shape[1]:
                 comp[y0 + yy, x0 + xx] = crgb[yy, xx]
@@ -80,12 +84,15 @@ def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, str
                     (1, 2, 3)
                 )
                 fo += w.bias
-                out.append(f @ fo / (np.linalg.norm(f) * np.linalg.norm(fo)) * rarity[gy, gx])
+                out.append(f @ fo / (np.linalg.norm(f) * np.linalg.norm(fo)) * rarity[gy, gx] - offset[gy, gx])
     return np.array(out)
 
 
+@pytest.mark.parametrize("surround", ["photo", "fill"])
 @pytest.mark.parametrize("conv", ["warp", "torch"])
-def test_candidate_scores_equal_numpy_reference(random_weights, conv):
+def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround):
+    """Both conv forms, windows composited onto the photo (thesis) or onto the fill, with an offset map
+    (score_terms' background term) or none."""
     rng = np.random.default_rng(3)
     H, W_, stride = 40, 52, 3
     img = rng.integers(0, 256, (H, W_, 3), dtype=np.uint8)
@@ -98,8 +105,9 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv):
     rows, cols = grid_shape(W_, H, 11, stride)
     gboxes = grid_boxes(boxes, 11, stride)
     rarity = rng.random((rows, cols)).astype(np.float32)
+    offset = (0.3 * rng.random((rows, cols)) * rarity).astype(np.float32) if surround == "fill" else None
 
-    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv)
+    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv, surround=surround)
     image = sc.image_to_device(img)
     obs = sc.observed_features(image)
     norms = np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32)
@@ -110,11 +118,12 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv):
         wp.array(pix_off, dtype=wp.int32, device=DEVICE),
         len(boxes),
     )
-    vals, pt_off = sc.score_points(
-        image, batch, gboxes, obs, wp.array(norms, device=DEVICE), wp.array(rarity, device=DEVICE)
-    )
+    pw = point_weights(wp.array(rarity, device=DEVICE), None if offset is None else wp.array(offset, device=DEVICE))
+    vals, pt_off = sc.score_points(image, batch, gboxes, obs, wp.array(norms, device=DEVICE), pw)
     got = vals.numpy()
-    ref = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity)
+    ref = _numpy_scores(
+        img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity, offset, surround == "fill"
+    )
     assert got.shape == ref.shape and pt_off.numpy()[-1] == len(ref)
     off = ref == NOT_ON_MASK
     assert np.array_equal(got == NOT_ON_MASK, off) and 0 < off.sum() < len(ref)

@@ -109,3 +109,26 @@ def test_conv_settings_apply_inside_the_block_only(caffe_weights):
     with settings:
         assert torch.get_num_threads() == 1
     assert torch.get_num_threads() == before
+
+
+@pytest.mark.parametrize("shrink", [0.0, 3.0, 16.0])
+def test_shrink_divides_the_top_sum_by_k_plus_k0(shrink):
+    """The size-aware score (score_terms' shrink): host and device give sum(top k) / (k + k0)."""
+    values, offsets = _segments_with_edge_cases(np.random.default_rng(5))
+    alpha = 0.5
+    got, n = top_alpha_mean(values, offsets, alpha, shrink)
+    dev, _ = top_alpha_mean_device(
+        wp.array(values, dtype=wp.float32, device=DEVICE),
+        wp.array(offsets, dtype=wp.int32, device=DEVICE),
+        alpha,
+        shrink,
+    )
+    for c in range(len(offsets) - 1):
+        v = values[offsets[c] : offsets[c + 1]]
+        v = np.sort(v[v != NOT_ON_MASK].astype(np.float64))[::-1]
+        if len(v) == 0:
+            assert got[c] == -np.inf and dev.numpy()[c] == -np.inf
+            continue
+        k = alpha_count(alpha, len(v))
+        assert np.isclose(got[c], v[:k].sum() / (k + shrink), atol=1e-6)
+        assert np.isclose(dev.numpy()[c], got[c], rtol=0, atol=1e-6)

@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
         scorer = eng.scorer
 
         def call(scorer=scorer):
-            out, _ = scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.rarity)
+            out, _ = scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.weights)
             wp.synchronize_device(args.device)
             return out
 

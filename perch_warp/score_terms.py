@@ -1,0 +1,117 @@
+"""What a candidate's score is made of: named scores and their terms (issue 17).
+
+A feature point's value is
+
+    value = cos(R, I) * gain - offset          (kernel #2, kernels/features.py)
+
+with R the candidate's conv1 feature there, I the photo's, `gain` the photo's rarity
+(thesis §3.2.2) and `offset` the credit the background alone would earn there; a
+candidate's score is sum(top k values) / (k + shrink), k = ceil(α n) of its n
+silhouette points (kernels/reduce.py). `thesis` is the thesis's formula exactly
+(offset 0, shrink 0, windows composited onto the photo).
+
+Terms (each off in `thesis`):
+- ``surround``: what an edge window sees beyond the silhouette. ``photo`` (thesis):
+  the photo's pixels, so a silhouette that touches a strong edge borrows it; ``fill``:
+  the weights' preprocessing mean (zero input to conv1), so only the render counts.
+- ``background`` λ: offset = λ * gain * max(0, cos(B, I)), B the photo's commonest
+  appearance (the centroid of its largest k-means cluster, usually the table): a
+  point earns only what the render explains better than the table would.
+- ``shrink`` k0: the top-α sum over k + k0 points, so a small silhouette's mean of
+  few points, whose maximum over many candidates is inflated by chance, is shrunk
+  towards 0 (a size-aware statistic).
+- ``rarity``: ``max`` (thesis: 1 - count / max count; the commonest cluster weighs 0)
+  or ``total`` (1 - count / all points); ``inits``: k-means initialisations (best of).
+
+The pruned search stays exact for every score: cos <= 1 and gain >= 0 give
+value <= gain - offset =: ceiling, pointwise on the silhouette, and the top-k sum is
+monotone in every value with the same k and the same positive divisor, so the
+top-α reduction of the ceiling bounds the score (perch_warp.bound).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import numpy as np
+
+from .errors import PerchError
+
+SURROUNDS = ("photo", "fill")
+RARITY_MODES = ("max", "total")
+
+
+@dataclass(frozen=True)
+class ScoreTerms:
+    """The terms of a score (see the module doc); the defaults are the thesis's."""
+
+    surround: str = "photo"
+    background: float = 0.0
+    shrink: float = 0.0
+    rarity: str = "max"
+    inits: int = 1
+
+    def __post_init__(self) -> None:
+        if self.surround not in SURROUNDS:
+            raise PerchError(f"score term surround must be one of {', '.join(SURROUNDS)}, got {self.surround!r}")
+        if self.rarity not in RARITY_MODES:
+            raise PerchError(f"score term rarity must be one of {', '.join(RARITY_MODES)}, got {self.rarity!r}")
+        if not (np.isfinite(self.background) and 0.0 <= self.background <= 1.0):
+            raise PerchError(f"score term background must be in [0, 1], got {self.background}")
+        if not (np.isfinite(self.shrink) and self.shrink >= 0.0):
+            raise PerchError(f"score term shrink must be >= 0, got {self.shrink}")
+        if self.inits < 1:
+            raise PerchError(f"score term inits must be >= 1, got {self.inits}")
+
+    def describe(self) -> str:
+        """`key=value,...` of the terms that differ from the thesis's (empty for the thesis)."""
+        base = ScoreTerms()
+        return ",".join(
+            f"{f.name}={getattr(self, f.name)}"
+            for f in dataclasses.fields(self)
+            if getattr(self, f.name) != getattr(base, f.name)
+        )
+
+
+SCORES: dict[str, ScoreTerms] = {
+    "thesis": ScoreTerms(),
+}
+
+
+def parse_score(spec: str) -> tuple[str, ScoreTerms]:
+    """A score by name (SCORES) or as terms `key=value,...` over the thesis's (e.g.
+    `surround=fill,shrink=16`); returns the name to report and the terms."""
+    if spec in SCORES:
+        return spec, SCORES[spec]
+    if "=" not in spec:
+        raise PerchError(
+            f"unknown score {spec!r}: use one of {', '.join(SCORES)} or terms like surround=fill,shrink=16"
+        )
+    kinds = {f.name: f.type for f in dataclasses.fields(ScoreTerms)}
+    values: dict = {}
+    for part in spec.split(","):
+        key, _, raw = part.partition("=")
+        key = key.strip()
+        if key not in kinds:
+            raise PerchError(f"unknown score term {key!r} in {spec!r}: terms are {', '.join(kinds)}")
+        kind = kinds[key]
+        try:
+            values[key] = float(raw) if kind == "float" else int(raw) if kind == "int" else raw.strip()
+        except ValueError:
+            raise PerchError(f"score term {key} needs a {kind}, got {raw!r}") from None
+    terms = ScoreTerms(**values)
+    return terms.describe() or "thesis", terms
+
+
+def background_offset(features: np.ndarray, labels: np.ndarray, gain: np.ndarray, weight: float) -> np.ndarray:
+    """offset (N,) = weight * gain * max(0, cos(B, I)) for the photo's features I (N, C), with B the
+    centroid of the largest cluster of labels (N,); zeros when weight is 0."""
+    if weight == 0.0:
+        return np.zeros(len(features), np.float32)
+    f = np.asarray(features, np.float64)
+    counts = np.bincount(labels)
+    B = f[labels == int(np.argmax(counts))].mean(axis=0)
+    norms = np.linalg.norm(f, axis=1) * np.linalg.norm(B)
+    cos = np.divide(f @ B, norms, out=np.zeros(len(f)), where=norms > 1e-12)
+    return (weight * np.asarray(gain, np.float64) * np.maximum(cos, 0.0)).astype(np.float32)

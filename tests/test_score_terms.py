@@ -1,0 +1,56 @@
+"""Score terms (perch_warp.score_terms): parsing, and the background offset against its definition."""
+
+import numpy as np
+import pytest
+
+from perch_warp.errors import PerchError
+from perch_warp.rarity import rarity_from_labels
+from perch_warp.score_terms import SCORES, ScoreTerms, background_offset, parse_score
+
+
+def test_names_and_terms_parse():
+    assert parse_score("thesis") == ("thesis", ScoreTerms())
+    name, terms = parse_score("surround=fill, shrink=16,background=0.5")
+    assert terms == ScoreTerms(surround="fill", shrink=16.0, background=0.5)
+    assert name == "surround=fill,background=0.5,shrink=16.0"
+    assert parse_score("shrink=0")[0] == "thesis"  # the thesis's terms, however written
+    assert set(SCORES) >= {"thesis"}
+
+
+@pytest.mark.parametrize(
+    "spec, culprit",
+    [
+        ("nonsense", "nonsense"),
+        ("colour=red", "colour"),
+        ("shrink=abc", "shrink"),
+        ("shrink=-1", "shrink"),
+        ("surround=blur", "surround"),
+        ("background=2", "background"),
+        ("rarity=median", "rarity"),
+        ("inits=0", "inits"),
+    ],
+)
+def test_bad_terms_name_the_culprit(spec, culprit):
+    with pytest.raises(PerchError, match=culprit):
+        parse_score(spec)
+
+
+def test_rarity_modes():
+    labels = np.array([0, 0, 0, 1, 1, 2])
+    assert np.allclose(rarity_from_labels(labels, 3, "max"), [0, 0, 0, 1 / 3, 1 / 3, 2 / 3])
+    assert np.allclose(rarity_from_labels(labels, 3, "total"), [0.5, 0.5, 0.5, 2 / 3, 2 / 3, 5 / 6])
+
+
+def test_background_offset_is_weighted_cosine_to_the_commonest_centroid():
+    rng = np.random.default_rng(0)
+    feats = rng.normal(size=(50, 8))
+    labels = rng.integers(0, 4, 50)
+    labels[:20] = 2  # cluster 2 is the commonest
+    gain = rng.random(50).astype(np.float32)
+    got = background_offset(feats, labels, gain, 0.7)
+    B = feats[labels == 2].mean(0)
+    for i in range(50):
+        cos = feats[i] @ B / (np.linalg.norm(feats[i]) * np.linalg.norm(B))
+        assert got[i] == pytest.approx(0.7 * gain[i] * max(cos, 0.0), abs=1e-6)
+    assert np.all(background_offset(feats, labels, gain, 0.0) == 0)
+    assert np.all(gain - got >= 0)  # the ceiling gain - offset stays >= 0 for weights <= 1
