@@ -18,7 +18,6 @@ Every malformed input raises `PerchError` naming the file.
 from __future__ import annotations
 
 import json
-import os
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -89,17 +88,46 @@ def load_scene_camera(path: str | Path) -> dict[int, dict]:
     return data  # type: ignore[return-value]
 
 
+# Public BOP annotations store rotations to a few digits, orthonormal only to ~5e-3 per entry. Such a
+# rotation is projected onto SO(3) (the nearest rotation, by SVD) when max |R R^T - I| is at most this;
+# beyond it (or with det < 0) the instance is no rotation and its target fails with that reason.
+GT_ROTATION_TOLERANCE = 2e-2
+# Below this max |R R^T - I| a rotation is orthonormal to the file's rounding: not counted as projected.
+_GT_ROUNDING = 1e-3
+
+
 @dataclass(frozen=True)
 class GtInstance:
-    """One ground-truth object instance: model -> camera, translation in metres."""
+    """One ground-truth object instance: model -> camera, translation in metres.
+
+    `R_m2c` is a rotation (projected onto SO(3) when the file's was near-orthonormal: `projected`);
+    `problem` says why the instance cannot be used (its rotation is too far from one), else None.
+    """
 
     obj_id: int
     R_m2c: np.ndarray
     t_m2c_m: np.ndarray
+    projected: bool = False
+    problem: str | None = None
+
+
+def gt_rotation(R: np.ndarray) -> tuple[np.ndarray, bool, str | None]:
+    """(rotation, projected?, problem) for a ground-truth cam_R_m2c: see GT_ROTATION_TOLERANCE."""
+    R = np.asarray(R, dtype=np.float64).reshape(3, 3)
+    dev = float(np.abs(R @ R.T - np.eye(3)).max())
+    if dev > GT_ROTATION_TOLERANCE or np.linalg.det(R) <= 0:
+        why = f"max |R R^T - I| = {dev:.3g} > {GT_ROTATION_TOLERANCE:g}" if dev > GT_ROTATION_TOLERANCE else "det < 0"
+        return R, False, f"cam_R_m2c is not a rotation ({why})"
+    u, _, vt = np.linalg.svd(R)
+    return u @ vt, dev > _GT_ROUNDING, None
 
 
 def load_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
-    """`scene_gt.json`: image id -> instances in file order (BOP mm converted to metres)."""
+    """`scene_gt.json`: image id -> instances in file order (BOP mm converted to metres).
+
+    Malformed entries raise PerchError naming file, image and instance; a rotation too far from one
+    does not (one bad instance must not stop an evaluation): it is the instance's `problem`.
+    """
     path = Path(path)
     data = _id_keyed(read_json(path, "scene_gt.json"), path)
     out: dict[int, list[GtInstance]] = {}
@@ -112,14 +140,39 @@ def load_scene_gt(path: str | Path) -> dict[int, list[GtInstance]]:
             if not isinstance(g, dict) or not {"obj_id", "cam_R_m2c", "cam_t_m2c"} <= set(g):
                 raise PerchError(f"{path}: {where} needs obj_id, cam_R_m2c and cam_t_m2c")
             try:
+                if isinstance(g["obj_id"], bool) or float(g["obj_id"]) != int(g["obj_id"]):
+                    raise ValueError
                 obj_id = int(g["obj_id"])
             except (TypeError, ValueError):
                 raise PerchError(f"{path}: {where} obj_id {g['obj_id']!r} is not an integer") from None
             R = _floats(g["cam_R_m2c"], 9, path, f"{where} cam_R_m2c").reshape(3, 3)
-            t = _floats(g["cam_t_m2c"], 3, path, f"{where} cam_t_m2c") / 1000.0
-            lst.append(GtInstance(obj_id, R, t))
+            t = _floats(g["cam_t_m2c"], 3, path, f"{where} cam_t_m2c (mm)") / 1000.0
+            R, projected, problem = gt_rotation(R)
+            lst.append(GtInstance(obj_id, R, t, projected, problem and f"{path} {where}: {problem}"))
         out[im_id] = lst
     return out
+
+
+def truth_instance(path: str | Path, im_id: int | None, obj_id: int | None) -> GtInstance:
+    """The ground truth of `obj_id` in image `im_id` (None: the file's only image) from a scene_gt.json,
+    read by the same validated reader as `eval`; PerchError naming the file and what is missing."""
+    if obj_id is None:
+        raise PerchError("--truth needs --obj-id (the object's id in the ground truth)")
+    path = Path(path)
+    gts = load_scene_gt(path)
+    if im_id is None:
+        if len(gts) != 1:
+            raise PerchError(f"ground truth {path} has {len(gts)} images; say which with --image-id")
+        im_id = next(iter(gts))
+    if im_id not in gts:
+        raise PerchError(f"ground truth {path} has no entry for image id {im_id} (has {sorted(gts)[:10]})")
+    inst = [g for g in gts[im_id] if g.obj_id == obj_id]
+    if not inst:
+        have = sorted({g.obj_id for g in gts[im_id]})
+        raise PerchError(f"ground truth {path} has no object {obj_id} in image {im_id} (has objects {have})")
+    if inst[0].problem:
+        raise PerchError(inst[0].problem)
+    return inst[0]
 
 
 def load_scene_gt_info(path: str | Path) -> dict[int, list[dict]]:
@@ -163,11 +216,13 @@ class Dataset:
         return self.split_dir / f"{scene_id:06d}"
 
     def scene_ids(self) -> list[int]:
-        """Scene folders of the split (integer-named), sorted."""
+        """Scene folders of the split, sorted: only BOP's six-digit names (000002), which `scene_dir` reads back,
+        so that a stray folder `2` (or a `²`, which str.isdigit accepts) neither counts scene 2 twice nor breaks."""
         ids = []
         for p in self.split_dir.iterdir():
-            if p.is_dir() and p.name.isdigit():
-                ids.append(int(p.name))
+            name = p.name
+            if p.is_dir() and len(name) == 6 and name.isascii() and name.isdigit():
+                ids.append(int(name))
         return sorted(ids)
 
     def model_path(self, obj_id: int) -> Path | None:
@@ -235,35 +290,28 @@ def image_path(scene_dir: Path, im_id: int, kind: str = "rgb") -> Path | None:
 
 
 def image_size(path: Path) -> tuple[int, int]:
-    """(width, height) from the image header without decoding the pixels."""
-    from PIL import Image, UnidentifiedImageError
+    """(width, height) from the image header without decoding the pixels (size limits: `image.image_header_size`)."""
+    from .image import image_header_size
 
-    try:
-        with Image.open(path) as im:
-            return im.size
-    except (UnidentifiedImageError, OSError) as e:
-        raise PerchError(f"cannot read image {path}: {e}") from None
+    return image_header_size(path)
 
 
 def camera_for_image(ds: Dataset, entry: dict, rgb: Path, im_id: int, source: Path) -> Camera:
-    """The image's `Camera`, refusing images whose size does not fit `cam_K` (or root camera.json).
-
-    Besides `Camera`'s own checks, the principal point must lie within 15% of the
-    image size from its centre: real cameras have it within a few percent, while an
-    image resized by 2x (either way) after calibration puts it 25% or more away.
-    """
+    """The image's `Camera`, refusing images whose size does not fit `cam_K` (or root camera.json);
+    the principal-point rule is `camera_from_entry`'s, shared with the single-image command."""
     width, height = image_size(rgb)
     if ds.camera_info is not None:
-        w0, h0 = ds.camera_info.get("width"), ds.camera_info.get("height")
-        if w0 is not None and h0 is not None and (int(w0), int(h0)) != (width, height):
+        w0 = _entry_size_or_none(ds.camera_info, "width", ds.root / "camera.json")
+        h0 = _entry_size_or_none(ds.camera_info, "height", ds.root / "camera.json")
+        if w0 is not None and h0 is not None and (w0, h0) != (width, height):
             raise PerchError(f"image {rgb} is {width}x{height} but {ds.root / 'camera.json'} says {w0}x{h0}")
-    cam = camera_from_entry(entry, width, height, source=f"{source} image {im_id} ({rgb.name})")
-    if abs(cam.cx - (width - 1) / 2) > 0.15 * width or abs(cam.cy - (height - 1) / 2) > 0.15 * height:
-        raise PerchError(
-            f"image {rgb} is {width}x{height} but cam_K in {source} (image {im_id}) has its principal point at "
-            f"({cam.cx:.1f}, {cam.cy:.1f}), implying about {round(2 * cam.cx + 1)}x{round(2 * cam.cy + 1)}"
-        )
-    return cam
+    return camera_from_entry(entry, width, height, source=f"{source} image {im_id}", image=str(rgb))
+
+
+def _entry_size_or_none(entry: dict, key: str, source: Path) -> int | None:
+    from .camera import _entry_size
+
+    return _entry_size(entry, key, str(source))
 
 
 # ----------------------------------------------------------------------------- table from depth
@@ -430,16 +478,10 @@ class BopResult:
 
 
 def write_results(path: str | Path, results: list[BopResult]) -> None:
-    """Write a whole results file atomically (temporary file, fsync, rename)."""
-    path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp")
-    with open(tmp, "w") as f:
-        f.write(RESULTS_HEADER + "\n")
-        for r in results:
-            f.write(r.line() + "\n")
-        f.flush()
-        os.fsync(f.fileno())
-    os.replace(tmp, path)
+    """Write a whole results file atomically (unique temporary file, fsync, rename)."""
+    from .outputs import atomic_write_text
+
+    atomic_write_text(path, "".join(line + "\n" for line in [RESULTS_HEADER, *(r.line() for r in results)]))
 
 
 def read_results(path: str | Path) -> list[BopResult]:

@@ -10,12 +10,9 @@ import argparse
 import importlib
 import json
 import math
-import os
 import re
 import sys
 from pathlib import Path
-
-import numpy as np
 
 from .errors import PerchError
 
@@ -26,6 +23,15 @@ SUBCOMMANDS = {
     "synth": ("perch_warp.synth", "generate photorealistic synthetic BOP test scenes"),
     "bench": ("perch_warp.bench", "time the reference workload, a ray-casting microbenchmark and its Open3D peer"),
 }
+
+
+# Host bytes a search keeps per candidate of its grid, counted from the arrays of engine.py (not
+# measured): the pruned search holds a bound, a score and a box size (3 x 8 B) for every candidate, and
+# while sorting the bounds their negation, the order, the finite mask and the ranked bounds (8 + 8 + 1 +
+# 8 + 8 B): 57 B, rounded up to 64. Poses, boxes and renderings are set up a chunk/batch at a time, so
+# they do not grow with the grid. See docs/reliability.md.
+BYTES_PER_CANDIDATE = 64
+DEFAULT_MAX_CANDIDATES = 50_000_000  # 3.2 GB at BYTES_PER_CANDIDATE; the reference workload has 485,604
 
 
 def log(msg: str) -> None:
@@ -48,6 +54,13 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--seed", type=int, default=0, help="k-means seed (default: 0)")
     g.add_argument("--top-k", type=int, default=5, help="how many best poses to report (default: 5)")
     g.add_argument("--relu", action="store_true", help="apply AlexNet's ReLU after conv1 (default: raw conv1)")
+    g.add_argument(
+        "--score",
+        default="thesis",
+        metavar="NAME|TERMS",
+        help="what a candidate's score is made of: thesis (the thesis's formula), or terms over it such as "
+        "surround=fill,background=0.5,shrink=16 (perch_warp/score_terms.py; default: thesis)",
+    )
     g.add_argument(
         "--search",
         default="auto",
@@ -124,11 +137,89 @@ def add_search_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument(
         "--clip", type=float, default=1.0, help="default region: visible table clipped to a square this wide (m)"
     )
+    g.add_argument(
+        "--max-candidates",
+        type=int,
+        default=DEFAULT_MAX_CANDIDATES,
+        help=f"refuse a search space with more grid poses than this, before any work (default: "
+        f"{DEFAULT_MAX_CANDIDATES:,}, about {DEFAULT_MAX_CANDIDATES * BYTES_PER_CANDIDATE / 1e9:.1f} GB; "
+        "raise it for larger searches that fit in memory)",
+    )
+
+
+def _finite(name: str, value: float, positive: bool = False) -> None:
+    if not math.isfinite(value) or (positive and value <= 0):
+        raise PerchError(f"{name} must be a {'positive ' if positive else ''}finite number, got {value}")
+
+
+def validate_options(args: argparse.Namespace) -> None:
+    """Every numeric option of the method and the search space, before any file is read (one rule per
+    option, shared by the estimate, demo and eval commands; EngineConfig checks the method's own values)."""
+    for name in ("xy_step", "yaw_step", "clip", "coarse_xy", "coarse_yaw", "refine_xy", "refine_yaw"):
+        if hasattr(args, name):
+            _finite("--" + name.replace("_", "-"), getattr(args, name), positive=True)
+    for name in ("x_range", "y_range", "yaw_range"):
+        for v in getattr(args, name, None) or ():
+            _finite("--" + name.replace("_", "-"), v)
+    if getattr(args, "lift_mm", None) is not None:
+        _finite("--lift-mm", args.lift_mm)
+    if args.batch_pixels is not None and args.batch_pixels < 1:
+        raise PerchError(f"--batch-pixels must be a positive number of pixels, got {args.batch_pixels}")
+    # Beyond a feature window (11 px for AlexNet's conv1) the grid skips pixels: with 32 px an object
+    # of 100 px keeps ~9 feature points, and much coarser grids leave most objects none.
+    if not 1 <= args.stride <= MAX_STRIDE:
+        raise PerchError(f"--stride must be 1..{MAX_STRIDE} pixels, got {args.stride}")
+    if getattr(args, "max_candidates", 1) < 1:
+        raise PerchError(f"--max-candidates must be at least 1, got {args.max_candidates}")
+
+
+MAX_STRIDE = 32
+
+
+class SearchTooLarge(PerchError):
+    """A search space beyond --max-candidates or the memory available: an option problem, not a target's."""
+
+
+def _available_memory_bytes() -> int | None:
+    """MemAvailable from /proc/meminfo (Linux), None elsewhere."""
+    try:
+        for line in Path("/proc/meminfo").read_text().splitlines():
+            if line.startswith("MemAvailable:"):
+                return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    return None
+
+
+def check_search_size(space, max_candidates: int) -> int:
+    """The space's candidate count, refused before any work when it exceeds max_candidates or the memory
+    that BYTES_PER_CANDIDATE says it needs is not available. Counted from the axes (never materialised)."""
+    # Counted from the ranges first: the axes of a huge space (--xy-step 1e-6) would not fit in memory.
+    (x0, x1), (y0, y1), (a0, a1) = space.x_range_m, space.y_range_m, space.yaw_range_rad
+    rough = [(hi - lo) / step + 1 for lo, hi, step in ((x0, x1, space.xy_step_m), (y0, y1, space.xy_step_m))]
+    rough.append(min(a1 - a0, 2 * math.pi) / space.yaw_step_rad + 1)
+    n = math.prod(rough) if math.prod(rough) > 2 * max_candidates else len(space)
+    need = n * BYTES_PER_CANDIDATE
+    what = (
+        f"the search space has {'about ' if not isinstance(n, int) else ''}{n:,.0f} candidates "
+        f"(x {x0:g}..{x1:g} m, y {y0:g}..{y1:g} m step {space.xy_step_m:g} m, yaw step "
+        f"{math.degrees(space.yaw_step_rad):g} deg), needing about {need / 1e9:.3g} GB"
+    )
+    if n > max_candidates:
+        raise SearchTooLarge(
+            f"{what}: more than --max-candidates {max_candidates:,}; narrow --x-range/--y-range, coarsen "
+            "--xy-step/--yaw-step, or raise --max-candidates if the memory is there"
+        )
+    avail = _available_memory_bytes()
+    if avail is not None and need > avail:
+        raise SearchTooLarge(f"{what}, more than the {avail / 1e9:.1f} GB of memory available: narrow or coarsen it")
+    return int(n)
 
 
 def engine_config_from_args(args: argparse.Namespace):
     from .engine import EngineConfig
 
+    validate_options(args)
     return EngineConfig(
         stride=args.stride,
         alpha=args.alpha,
@@ -136,6 +227,7 @@ def engine_config_from_args(args: argparse.Namespace):
         seed=args.seed,
         top_k=args.top_k,
         relu=args.relu,
+        score=args.score,
         batch_pixels=args.batch_pixels,
         search=args.search,
         renderer=args.renderer,
@@ -158,15 +250,17 @@ def search_space_from_args(args: argparse.Namespace, camera, table):
     yaw_lo, yaw_hi = (math.radians(a) for a in args.yaw_range)
     if args.x_range is None and args.y_range is None:
         space = SearchSpace.visible_table(camera, table, args.xy_step, math.radians(args.yaw_step), clip_m=args.clip)
-        return SearchSpace(
+        space = SearchSpace(
             space.x_range_m, space.y_range_m, args.xy_step, (yaw_lo, yaw_hi), math.radians(args.yaw_step)
         )
+        check_search_size(space, getattr(args, "max_candidates", DEFAULT_MAX_CANDIDATES))
+        return space
     if args.x_range is None or args.y_range is None:
         raise PerchError("give both --x-range and --y-range, or neither (then the visible table is searched)")
     space = SearchSpace(
         tuple(args.x_range), tuple(args.y_range), args.xy_step, (yaw_lo, yaw_hi), math.radians(args.yaw_step)
     )
-    len(space)  # validates the ranges and steps
+    check_search_size(space, getattr(args, "max_candidates", DEFAULT_MAX_CANDIDATES))  # validates ranges and steps
     return space
 
 
@@ -217,15 +311,13 @@ def conv_line(result) -> str:
     info = result.info
     how = {"torch": "torch conv2d on each candidate's crop", "warp": "Warp kernel, point by point"}[info["conv"]]
     why = f" (auto on {result.device})" if info.get("conv_option") == "auto" else ""
-    return f"features: conv1 by {how}{why}"
+    return f"features: conv1 by {how}{why}; score: {info.get('score', 'thesis')}"
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(json.dumps(data, indent=1))
-    os.replace(tmp, path)
+    from .outputs import atomic_write_text
+
+    atomic_write_text(path, json.dumps(data, indent=1))
 
 
 # --- the main job: estimate one image -----------------------------------------------------------
@@ -236,6 +328,11 @@ def add_estimate_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("--mesh", required=True, help="object mesh: textured OBJ, PLY with vertex colours, PLY/GLB with UVs")
     p.add_argument(
         "--mesh-units", default="auto", choices=["auto", "mm", "m"], help="mesh length unit (default: auto by size)"
+    )
+    p.add_argument(
+        "--untextured",
+        action="store_true",
+        help="search a mesh that has no material and no vertex colours at all in uniform grey (silhouette only)",
     )
     p.add_argument(
         "--camera", required=True, help="camera JSON: BOP scene_camera.json style (cam_K, cam_R_w2c, cam_t_w2c in mm)"
@@ -271,31 +368,21 @@ def _image_id(args: argparse.Namespace) -> int | None:
     return int(m.group(1)) if m else None
 
 
-def _truth_instance(path: str, image_id: int | None, obj_id: int | None) -> dict:
-    try:
-        data = json.loads(Path(path).read_text())
-    except (OSError, ValueError) as e:
-        raise PerchError(f"cannot read ground truth {path}: {e}") from None
-    if obj_id is None:
-        raise PerchError("--truth needs --obj-id")
-    entries = (
-        data.get(str(image_id)) if image_id is not None else (next(iter(data.values())) if len(data) == 1 else None)
-    )
-    if entries is None:
-        raise PerchError(f"ground truth {path} has no entry for image id {image_id}")
-    inst = [g for g in entries if int(g.get("obj_id", -1)) == obj_id]
-    if not inst:
-        raise PerchError(f"ground truth {path} has no object {obj_id} in image {image_id}")
-    return inst[0]
-
-
 def run_estimate(args: argparse.Namespace) -> int:
+    from .bop import truth_instance
     from .camera import camera_from_entry, read_camera_json
-    from .image import load_rgb, save_png
+    from .image import image_header_size, load_rgb, save_png
     from .mesh import load_mesh
+    from .outputs import check_output_file
     from .table import RestingPose, Table, decompose_on_table
 
-    image = load_rgb(args.image)
+    # Everything is checked before any work: options, output paths, then the inputs from the cheapest.
+    engine_config_from_args(args)
+    if args.out:
+        check_output_file(args.out, "--out")
+    if args.overlay:
+        check_output_file(args.overlay, "--overlay")
+    width, height = image_header_size(args.image)
     image_id = _image_id(args)
     try:
         entry = read_camera_json(args.camera, image_id)
@@ -304,19 +391,25 @@ def run_estimate(args: argparse.Namespace) -> int:
             entry = read_camera_json(args.camera, None)
         else:
             raise
-    camera = camera_from_entry(entry, image.shape[1], image.shape[0], source=args.camera)
+    camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
     table = Table.from_entry(entry, source=args.camera)
-    mesh = load_mesh(args.mesh, args.mesh_units)
     truth = None
-    if args.truth:
-        g = _truth_instance(args.truth, image_id, args.obj_id)
-        R_gt = np.asarray(g["cam_R_m2c"], dtype=np.float64).reshape(3, 3)
-        t_gt = np.asarray(g["cam_t_m2c"], dtype=np.float64) / 1000.0
-        resting, gx, gy, gyaw = decompose_on_table(table, R_gt, t_gt)
-        truth = (R_gt, t_gt, gx, gy, gyaw)
-    else:
+    if args.truth or args.obj_id is not None:
+        if not args.truth:
+            raise PerchError("--obj-id needs --truth (a BOP scene_gt.json)")
+        g = truth_instance(args.truth, args.image_id if args.image_id is not None else image_id, args.obj_id)
+        try:
+            resting, gx, gy, gyaw = decompose_on_table(table, g.R_m2c, g.t_m2c_m)
+        except PerchError as e:
+            raise PerchError(f"ground truth {args.truth}: {e}") from None
+        truth = (g.R_m2c, g.t_m2c_m, gx, gy, gyaw)
+    mesh = load_mesh(args.mesh, args.mesh_units, untextured=args.untextured)
+    if truth is None:
         resting = RestingPose.upright(mesh.vertices_m, lift_m=args.lift_mm / 1000.0)
     space = search_space_from_args(args, camera, table)
+    image = load_rgb(args.image)
+    if image.shape[:2] != (height, width):  # the file changed since its header was read
+        raise PerchError(f"image {args.image} changed while being read")
     if not args.quiet:
         log(f"mesh: {mesh.source}, units {mesh.units_note}, {len(mesh.faces)} faces")
         log(f"search: {space.describe()}")

@@ -13,8 +13,11 @@ Outputs in OUTDIR:
                    (BOP rows have no instance index). `time` is the seconds spent on the
                    whole image (the sum over its targets), the same on all its rows, as
                    the BOP toolkit requires.
-  targets.jsonl    one line per finished target: exact per-target time and search details.
-  per_target.csv   errors of every target (ADD-S, ADD, translation mm, yaw deg, ...).
+  targets.jsonl    one line per finished target: exact per-target time and search details; a target
+                   that failed (bad ground truth, an error in its search) gets a line with "failed":
+                   its reason, and the run goes on with the others (exit code 1 at the end).
+  per_target.csv   errors of every target (ADD-S, ADD, translation mm, yaw deg, ...); failed targets
+                   with their reason in `failure`.
   summary.json     metrics per object and over all objects, and per image label value
                    (`by_label`, see IMAGE_LABEL_KEYS); table.txt the printed table.
   adds_curve.png, occlusion.png (when scene_gt_info.json exists), lighting.png (when images
@@ -22,7 +25,9 @@ Outputs in OUTDIR:
 
 Resuming: both results.csv and targets.jsonl are brought up to date after every
 target (results.csv is rewritten atomically, so it is always a valid BOP file); a
-rerun of the same command skips the targets found in either file.
+rerun of the same command skips the targets found in either file, and tries failed ones
+again. A journal line torn by a crash (no final newline) is cut off before appending. One
+run at a time per OUTDIR: an flock on OUTDIR/.perch_warp.lock refuses a second, naming its pid.
 """
 
 from __future__ import annotations
@@ -73,6 +78,8 @@ _NOT_SEARCH_OPTIONS = {
     "progress",
     "top_k",
     "batch_pixels",
+    "cpu_threads",  # the scores do not depend on the number of CPU threads
+    "max_candidates",  # a guard, not a search setting
 }
 # Recorded separately in eval_config.json.
 _EVAL_ARGS = {"dataset", "split", "models", "table_source"}
@@ -93,6 +100,8 @@ class Target:
     t_gt_m: np.ndarray  # metres
     visib_fract: float | None = None
     labels: dict[str, str] = field(default_factory=dict)  # IMAGE_LABEL_KEYS found in the image's entry
+    gt_projected: bool = False  # R_gt was near-orthonormal in the file and projected onto SO(3)
+    problem: str | None = None  # why the target cannot be evaluated (recorded as failed, the run goes on)
 
     @property
     def key(self) -> tuple[int, int, int]:
@@ -191,7 +200,9 @@ def select_targets(
                         raise PerchError(f"{info_file}: image {im_id} must list one entry per instance of {gt_file}")
                     if "visib_fract" in lst[k]:
                         vf = float(lst[k]["visib_fract"])
-                targets.append(Target(scene_id, im_id, k, g.obj_id, g.R_m2c, g.t_m2c_m, vf, dict(labels)))
+                targets.append(
+                    Target(scene_id, im_id, k, g.obj_id, g.R_m2c, g.t_m2c_m, vf, dict(labels), g.projected, g.problem)
+                )
             if not targets:
                 continue
             if im_id not in cams:
@@ -326,8 +337,30 @@ class Done:
     details: dict = field(default_factory=dict)
 
 
-def _load_state(out_dir: Path, selection: Selection) -> tuple[dict, list[bop.BopResult]]:
-    """Finished targets keyed (scene, im, inst), and results.csv rows that match no current target.
+def _repair_journal(out_dir: Path) -> None:
+    """Cut off a last journal line torn by a crash (no final newline), so that the next record is not
+    appended onto it; the cut target's row in results.csv, if written, still counts, else it runs again."""
+    path = out_dir / JOURNAL_FILE
+    if not path.exists():
+        return
+    data = path.read_bytes()
+    if not data or data.endswith(b"\n"):
+        return
+    keep = data.rfind(b"\n") + 1
+    with open(path, "r+b") as f:
+        f.truncate(keep)
+        f.flush()
+        os.fsync(f.fileno())
+    print(
+        f"warning: {path} ended in an incomplete line ({len(data) - keep} bytes, left by an interrupted run): "
+        "cut off; its target counts only if results.csv has it",
+        file=sys.stderr,
+    )
+
+
+def _load_state(out_dir: Path, selection: Selection) -> tuple[dict, list[bop.BopResult], dict]:
+    """Finished targets keyed (scene, im, inst), results.csv rows that match no current target, and the
+    targets whose last journal record is a failure (key -> reason).
 
     Rows are matched to targets by order: the k-th row of object o in an image is the
     k-th instance of o in scene_gt.json. Per-target times come from the journal; rows
@@ -356,6 +389,7 @@ def _load_state(out_dir: Path, selection: Selection) -> tuple[dict, list[bop.Bop
                     done[(scene_id, im_id, cand[k])] = Done(r.obj_id, r.R, r.t_mm / 1000.0, r.score, share)
                 else:
                     foreign.append(r)
+    failed: dict[tuple[int, int, int], str] = {}
     journal = out_dir / JOURNAL_FILE
     if journal.exists():
         for no, line in enumerate(journal.read_text().splitlines(), start=1):
@@ -364,6 +398,10 @@ def _load_state(out_dir: Path, selection: Selection) -> tuple[dict, list[bop.Bop
             try:
                 j = json.loads(line)
                 key = (int(j["scene_id"]), int(j["im_id"]), int(j["inst"]))
+                if "failed" in j:
+                    if key not in done:
+                        failed[key] = str(j["failed"])
+                    continue
                 d = Done(
                     int(j["obj_id"]),
                     np.asarray(j["R"], dtype=np.float64).reshape(3, 3),
@@ -373,11 +411,16 @@ def _load_state(out_dir: Path, selection: Selection) -> tuple[dict, list[bop.Bop
                     j.get("details", {}),
                 )
             except (ValueError, KeyError, TypeError) as e:
-                # A line cut short by an interruption is the only expected damage: skip it, the target reruns.
-                print(f"warning: {journal} line {no} unreadable ({e}); that target will run again", file=sys.stderr)
+                # Torn tails are cut before a run (_repair_journal); this is damage inside the file.
+                print(
+                    f"warning: {journal} line {no} unreadable ({e}): skipped (its target counts if results.csv "
+                    "has it, else it runs again)",
+                    file=sys.stderr,
+                )
                 continue
             done[key] = d
-    return done, foreign
+            failed.pop(key, None)
+    return done, foreign, failed
 
 
 def _write_results(out_dir: Path, selection: Selection, done: dict, foreign: list[bop.BopResult]) -> None:
@@ -405,6 +448,19 @@ def _write_results(out_dir: Path, selection: Selection, done: dict, foreign: lis
     bop.write_results(out_dir / RESULTS_FILE, [r for _, r in rows])
 
 
+def _append_failure(out_dir: Path, target: Target, reason: str) -> None:
+    """Journal a failed target: its key and the one-line reason (it is tried again on a rerun)."""
+    record = {"scene_id": target.scene_id, "im_id": target.im_id, "inst": target.inst, "obj_id": target.obj_id}
+    _append_line(out_dir, json.dumps({**record, "failed": " ".join(reason.split())}))
+
+
+def _append_line(out_dir: Path, line: str) -> None:
+    with open(out_dir / JOURNAL_FILE, "a") as f:
+        f.write(line + "\n")
+        f.flush()
+        os.fsync(f.fileno())
+
+
 def _append_journal(out_dir: Path, target: Target, d: Done) -> None:
     line = json.dumps(
         {
@@ -420,10 +476,7 @@ def _append_journal(out_dir: Path, target: Target, d: Done) -> None:
         },
         default=_json_default,
     )
-    with open(out_dir / JOURNAL_FILE, "a") as f:
-        f.write(line + "\n")
-        f.flush()
-        os.fsync(f.fileno())
+    _append_line(out_dir, line)
 
 
 def _json_default(o):
@@ -445,17 +498,37 @@ def _check_config(out_dir: Path, config: dict, restart: bool) -> None:
             (out_dir / name).unlink(missing_ok=True)
     elif path.exists() and ((out_dir / RESULTS_FILE).exists() or (out_dir / JOURNAL_FILE).exists()):
         old = bop.read_json(path, "evaluation settings")
-        diffs = [
-            f"{k}: {old.get(k)!r} then, {config.get(k)!r} now"
-            for k in sorted(set(old) | set(config))
-            if old.get(k) != config.get(k)
-        ]
+        if not isinstance(old, dict):
+            raise PerchError(f"{path} is not an evaluation settings file: use another --out, or --restart")
+        diffs = _setting_diffs(old, config)
         if diffs:
             raise PerchError(
-                f"{out_dir} holds results made with other settings ({'; '.join(diffs)}): "
+                f"{out_dir} holds results made with other settings: {'; '.join(diffs)}; "
                 "use another --out, or --restart to start over"
             )
-    path.write_text(json.dumps(config, indent=1, default=_json_default) + "\n")
+    from .outputs import atomic_write_text
+
+    atomic_write_text(path, json.dumps(config, indent=1, default=_json_default) + "\n")
+
+
+def _setting_diffs(old: dict, new: dict) -> list[str]:
+    """Changed settings as options, briefly: ["--xy-step 0.01 then, 0.02 now", ...]; options that do not
+    change scores (_NOT_SEARCH_OPTIONS, e.g. --cpu-threads, also in files written before they were
+    ignored) are left out."""
+
+    def flat(c: dict) -> dict:
+        out = {k: v for k, v in c.items() if k != "options"}
+        out.update({k: v for k, v in (c.get("options") or {}).items() if k not in _NOT_SEARCH_OPTIONS})
+        return out
+
+    a, b = flat(old), flat(new)
+
+    def short(v) -> str:
+        text = json.dumps(v)
+        return text if len(text) <= 40 else text[:37] + "..."
+
+    names = sorted(k for k in set(a) | set(b) if a.get(k) != b.get(k))
+    return [f"--{k.replace('_', '-')} {short(a.get(k))} then, {short(b.get(k))} now" for k in names]
 
 
 # ----------------------------------------------------------------------------- the run
@@ -504,12 +577,29 @@ def evaluate(
     its search region. `options` (JSON)
     are the search settings, recorded in eval_config.json and checked on resume.
     """
-    from .image import load_rgb
 
+    from .outputs import check_output_dir, folder_lock
+
+    out_dir = check_output_dir(out_dir, "--out")
     ds = bop.open_dataset(dataset_dir, split, models_dir)
     selection = select_targets(ds, scenes, objects, max_images, table_source)
-    out_dir = Path(out_dir)
+    if not selection.targets:
+        raise PerchError(f"no targets: no instance of objects {sorted(objects or [])} with a mesh in {ds.split_dir}")
     out_dir.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out_dir, "OUTDIR"):
+        return _evaluate_locked(
+            ds, selection, out_dir, make_estimator, space_fn, split, table_source, options, restart, progress,
+            plots, gallery, max_points, command, dataset_dir,
+        )  # fmt: skip
+
+
+def _evaluate_locked(
+    ds, selection, out_dir, make_estimator, space_fn, split, table_source, options, restart, progress, plots,
+    gallery, max_points, command, dataset_dir,
+) -> dict:  # fmt: skip
+    """`evaluate` once OUTDIR is locked: the state, the loop over targets and the outputs."""
+    from .image import load_rgb
+
     config = {
         "dataset": str(Path(dataset_dir).resolve()),
         "split": split,
@@ -517,14 +607,13 @@ def evaluate(
         "options": options or {},
     }
     _check_config(out_dir, config, restart)
-    if not selection.targets:
-        raise PerchError(f"no targets: no instance of objects {sorted(objects or [])} with a mesh in {ds.split_dir}")
-    done, foreign = _load_state(out_dir, selection)
+    _repair_journal(out_dir)
+    done, foreign, failed = _load_state(out_dir, selection)
     tables = TableCache(table_source)
 
     todo = [(im, t) for im in selection.images for t in im.targets if t.key not in done]
     n_before = len(selection.targets) - len(todo)
-    estimator = make_estimator(selection.model_paths) if todo else None
+    estimator = None
     if n_before and todo:
         print(f"resuming: {n_before} of {len(selection.targets)} targets already done in {out_dir}", file=sys.stderr)
 
@@ -535,32 +624,53 @@ def evaluate(
     image = None
     try:
         for im, target in todo:
-            if current != (im.scene_id, im.im_id):
-                image = load_rgb(im.rgb)
-                current = (im.scene_id, im.im_id)
-            table, table_how = tables.get(im)
-            resting, _, _, _ = decompose_on_table(table, target.R_gt, target.t_gt_m)
-            space = space_fn(im.camera, table, resting)
-            prepare = getattr(estimator, "prepare", None)
-            if callable(prepare):
-                prepare(target.obj_id)  # building the engine is not part of the per-target runtime
-            t0 = time.perf_counter()
-            est = estimator(target, image, im.camera, table, resting, space)
-            dt = time.perf_counter() - t0
-            details = dict(est.details)
-            details["table"] = table_how
-            details.update(_space_details(space, table, target))
-            d = Done(
-                target.obj_id,
-                np.asarray(est.R_m2c, dtype=np.float64).reshape(3, 3),
-                np.asarray(est.t_m2c_m, dtype=np.float64).reshape(3),
-                float(est.score),
-                dt,
-                details,
-            )
+            # One bad target must not stop a long evaluation: whatever fails in it (its ground truth, its
+            # table, its search) is journalled as its failure and the run goes on. Options that would fail
+            # every target alike (SearchTooLarge) and interruptions still stop the run.
+            try:
+                if target.problem:
+                    raise PerchError(target.problem)
+                if current != (im.scene_id, im.im_id):
+                    image = None
+                    image = load_rgb(im.rgb)
+                    current = (im.scene_id, im.im_id)
+                if image is None:
+                    raise PerchError(f"image {im.rgb} could not be read (see the image's first target)")
+                table, table_how = tables.get(im)
+                resting, _, _, _ = decompose_on_table(table, target.R_gt, target.t_gt_m)
+                space = space_fn(im.camera, table, resting)
+                if estimator is None:
+                    estimator = make_estimator(selection.model_paths)
+                prepare = getattr(estimator, "prepare", None)
+                if callable(prepare):
+                    prepare(target.obj_id)  # building the engine is not part of the per-target runtime
+                t0 = time.perf_counter()
+                est = estimator(target, image, im.camera, table, resting, space)
+                dt = time.perf_counter() - t0
+                details = dict(est.details)
+                details["table"] = table_how
+                details.update(_space_details(space, table, target))
+                d = Done(
+                    target.obj_id,
+                    np.asarray(est.R_m2c, dtype=np.float64).reshape(3, 3),
+                    np.asarray(est.t_m2c_m, dtype=np.float64).reshape(3),
+                    float(est.score),
+                    dt,
+                    details,
+                )
+            except Exception as e:  # noqa: BLE001 - recorded with its reason; see above
+                if _stops_the_run(e):
+                    raise
+                reason = str(e) if isinstance(e, PerchError) else f"{type(e).__name__}: {e}"
+                failed[target.key] = " ".join(reason.split())
+                _append_failure(out_dir, target, reason)
+                print(f"target {target.key} (obj {target.obj_id}) failed: {failed[target.key]}", file=sys.stderr)
+                bar.update(1)
+                continue
             # Journal first: if the rewrite below is interrupted, the journal still has the target.
             _append_journal(out_dir, target, d)
             done[target.key] = d
+            failed.pop(target.key, None)
             _write_results(out_dir, selection, done, foreign)
             bar.set_postfix_str(f"{target.scene_id}/{target.im_id} obj {target.obj_id} {dt:.1f}s")
             bar.update(1)
@@ -570,8 +680,12 @@ def evaluate(
 
     geometry = GeometryCache(selection.model_paths, max_points)
     rows = compute_errors(selection, done, tables, geometry)
-    write_per_target(out_dir / "per_target.csv", rows)
+    write_per_target(out_dir / "per_target.csv", rows, _failed_rows(selection, failed))
     summary = summarize(rows, ds, selection)
+    summary["n_failed"] = len(failed)
+    summary["failed"] = [{"key": list(k), "reason": r} for k, r in sorted(failed.items())]
+    summary["n_gt_rotations_projected"] = sum(t.gt_projected for t in selection.targets)
+    summary["gt_rotation_tolerance"] = bop.GT_ROTATION_TOLERANCE
     summary.update(
         {
             "dataset": str(ds.root),
@@ -583,12 +697,29 @@ def evaluate(
         }
     )
     table_text = format_table(summary)
-    (out_dir / "table.txt").write_text(table_text + "\n")
+    from .outputs import atomic_write_text
+
+    atomic_write_text(out_dir / "table.txt", table_text + "\n")
     if plots and rows:
         summary["outputs"] += make_plots(out_dir, rows, summary, selection, tables, geometry, gallery)
-    (out_dir / "summary.json").write_text(json.dumps(summary, indent=1, default=_json_default) + "\n")
+    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1, default=_json_default) + "\n")
     summary["table_text"] = table_text
     return summary
+
+
+def _stops_the_run(e: Exception) -> bool:
+    """Errors that are not one target's: a search-size guard (the same options for every target)."""
+    from .cli import SearchTooLarge
+
+    return isinstance(e, SearchTooLarge)
+
+
+def _failed_rows(selection: Selection, failed: dict) -> list[dict]:
+    return [
+        {"scene_id": t.scene_id, "im_id": t.im_id, "inst": t.inst, "obj_id": t.obj_id, "failure": failed[t.key]}
+        for t in selection.targets
+        if t.key in failed
+    ]
 
 
 def _space_details(space, table: Table, target: Target) -> dict:
@@ -724,20 +855,26 @@ _PER_TARGET_COLUMNS = [
 ]
 
 
-def write_per_target(path: Path, rows: list[dict]) -> None:
-    """per_target.csv: errors in mm / degrees, table-frame poses in metres / degrees."""
+def write_per_target(path: Path, rows: list[dict], failed: Sequence[dict] = ()) -> None:
+    """per_target.csv: errors in mm / degrees, table-frame poses in metres / degrees; then the failed
+    targets, their ids and `failure` (the reason) only. Written atomically."""
     import csv
+    import io
 
-    with open(path, "w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(_PER_TARGET_COLUMNS)
-        for r in rows:
-            w.writerow(
-                [
-                    "" if r[c] is None else (f"{r[c]:.10g}" if isinstance(r[c], float) else r[c])
-                    for c in _PER_TARGET_COLUMNS
-                ]
-            )
+    columns = [*_PER_TARGET_COLUMNS, "failure"]
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(columns)
+    for r in [*rows, *failed]:
+        w.writerow(
+            [
+                "" if r.get(c) is None else (f"{r[c]:.10g}" if isinstance(r[c], float) else r[c])
+                for c in columns
+            ]
+        )
+    from .outputs import atomic_write_text
+
+    atomic_write_text(path, buf.getvalue())
 
 
 def _metrics(rows: list[dict]) -> dict:
@@ -905,6 +1042,13 @@ def format_table(summary: dict) -> str:
     outside = p.get("gt_outside_region") if p else 0
     if outside:
         notes.append(f"{outside} targets lie outside their search region.")
+    if summary.get("n_gt_rotations_projected"):
+        notes.append(
+            f"{summary['n_gt_rotations_projected']} ground-truth rotations were near-orthonormal and projected "
+            f"onto SO(3) (tolerance max |R R^T - I| <= {summary['gt_rotation_tolerance']:g})."
+        )
+    if summary.get("n_failed"):
+        notes.append(f"FAILED: {summary['n_failed']} targets (reasons in per_target.csv and summary.json).")
     return "\n".join(lines + notes)
 
 
@@ -1222,7 +1366,9 @@ def run(args: argparse.Namespace) -> int:
     import shlex
 
     from .cli import engine_config_from_args, search_space_from_args
+    from .outputs import check_output_dir
 
+    check_output_dir(args.out, "--out")  # before anything is read or searched
     objects = _ids(args.objects, "--objects")
     scenes = _ids(args.scenes, "--scenes")
     if args.max_images is not None and args.max_images < 1:
@@ -1265,4 +1411,11 @@ def run(args: argparse.Namespace) -> int:
         return 130
     print(summary["table_text"])
     print(f"wrote {', '.join(summary['outputs'])} in {args.out}")
+    if summary["n_failed"]:
+        print(
+            f"perch_warp: {summary['n_failed']} of {summary['n_targets']} targets failed (reasons in "
+            f"{args.out / 'per_target.csv'}); the others are evaluated",
+            file=sys.stderr,
+        )
+        return 1
     return 0

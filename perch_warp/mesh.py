@@ -11,6 +11,36 @@ from .errors import PerchError
 
 # A tabletop object larger than this many "units" across can only be in millimetres.
 _MM_DETECT_EXTENT = 5.0
+# Largest extent, in metres after the unit, that a tabletop object can have: outside it the mesh is
+# degenerate or its unit is wrong, which would otherwise surface later as an empty or off-image grid.
+OBJECT_EXTENT_M = (0.002, 2.0)
+# --untextured: a mesh with no material at all is searched in this uniform grey (silhouette and shading only).
+UNTEXTURED_GREY = 0.5
+
+
+def _obj_materials(path: Path) -> None:
+    """An OBJ's material files (mtllib) and their diffuse textures (map_Kd) must exist: trimesh would
+    otherwise search the object in a placeholder colour without a word."""
+    mtllibs, uses_material = [], False
+    with open(path, errors="replace") as f:
+        for line in f:
+            if line.startswith("mtllib"):
+                mtllibs += line.split()[1:]
+            elif line.startswith("usemtl"):
+                uses_material = True
+    if uses_material and not mtllibs:
+        raise PerchError(f"mesh {path} uses a material (usemtl) but names no material file (mtllib)")
+    for name in mtllibs:
+        mtl = path.parent / name
+        if not mtl.is_file():
+            raise PerchError(f"mesh {path}: its material file {mtl} (mtllib) is missing: put it beside the mesh")
+        with open(mtl, errors="replace") as f:
+            for line in f:
+                words = line.split()
+                if words and words[0] == "map_Kd" and len(words) > 1:
+                    tex = mtl.parent / words[-1]  # options such as -s u v come before the file name
+                    if not tex.is_file():
+                        raise PerchError(f"mesh {path}: texture {tex} (map_Kd in {mtl.name}) is missing")
 
 
 @dataclass(frozen=True)
@@ -66,11 +96,13 @@ def _texture_image(visual, path: Path) -> np.ndarray | None:
     return np.ascontiguousarray(arr[::-1])
 
 
-def load_mesh(path: str | Path, units: str = "auto") -> ObjectMesh:
+def load_mesh(path: str | Path, units: str = "auto", untextured: bool = False) -> ObjectMesh:
     """Load a mesh file into metres.
 
     units: "mm", "m", or "auto" (millimetres when the largest extent exceeds 5 units,
     as BOP models do; the choice is recorded in `units_note` and reported by the CLI).
+    untextured: search a mesh that has no material and no vertex colours at all in a uniform
+    grey (never a mesh whose material or texture file is missing: that is an error).
     """
     import trimesh
 
@@ -79,6 +111,8 @@ def load_mesh(path: str | Path, units: str = "auto") -> ObjectMesh:
         raise PerchError(f"mesh file not found: {path}")
     if units not in ("auto", "mm", "m"):
         raise PerchError(f"mesh units must be auto, mm or m, got {units!r}")
+    if path.suffix.lower() == ".obj":
+        _obj_materials(path)
     try:
         loaded = trimesh.load(str(path), process=False, force="mesh")
     except Exception as e:  # trimesh raises many types for unreadable files
@@ -90,15 +124,30 @@ def load_mesh(path: str | Path, units: str = "auto") -> ObjectMesh:
     if not np.all(np.isfinite(V)):
         raise PerchError(f"mesh {path} has non-finite vertex coordinates")
 
-    extent = float((V.max(0) - V.min(0)).max())
-    if extent <= 0:
-        raise PerchError(f"mesh {path} is degenerate (zero extent)")
+    extents = V.max(0) - V.min(0)
+    extent = float(extents.max())
     if units == "auto":
         scale = 1e-3 if extent > _MM_DETECT_EXTENT else 1.0
         note = f"{'mm' if scale == 1e-3 else 'm'} (auto: largest extent {extent:g} units)"
     else:
         scale = 1e-3 if units == "mm" else 1.0
         note = f"{units} (given)"
+    unit = "mm" if scale == 1e-3 else "m"
+    size = " x ".join(f"{e:g}" for e in extents)
+    lo, hi = OBJECT_EXTENT_M
+    if np.count_nonzero(extents > 0) < 2:
+        raise PerchError(f"mesh {path} is degenerate: its extent is {size} units (a point or a line)")
+    if not lo <= extent * scale <= hi:
+        other, other_scale = ("m", 1.0) if unit == "mm" else ("mm", 1e-3)
+        fix = (
+            f"if its unit is {other}, pass --mesh-units {other}"
+            if lo <= extent * other_scale <= hi
+            else "check the mesh file"
+        )
+        raise PerchError(
+            f"mesh {path} is {size} units across, read as {unit} ({'auto' if units == 'auto' else 'given'}): "
+            f"{extent * scale:g} m, outside the {lo * 1000:g} mm .. {hi:g} m of a tabletop object; {fix}"
+        )
 
     uv = texture = colors = None
     visual = loaded.visual
@@ -117,5 +166,12 @@ def load_mesh(path: str | Path, units: str = "auto") -> ObjectMesh:
     elif getattr(visual, "kind", None) == "vertex":
         colors = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
     if texture is None and colors is None:
-        raise PerchError(f"mesh {path} has no texture and no vertex colours: the search needs its appearance")
+        has_material = getattr(visual, "kind", None) == "texture" and getattr(visual, "material", None) is not None
+        if not untextured or has_material:
+            raise PerchError(
+                f"mesh {path} has no texture and no vertex colours: the search needs its appearance "
+                "(--untextured searches a mesh without any material in uniform grey)"
+            )
+        colors = np.full((len(V), 3), UNTEXTURED_GREY, np.float32)
+        note += ", untextured: uniform grey"
     return ObjectMesh(V * scale, F, uv, texture, colors, str(path), note)

@@ -72,7 +72,7 @@ class Table:
         if "cam_R_w2c" not in entry or "cam_t_w2c" not in entry:
             raise PerchError(
                 f"{source}: no table frame (needs 'cam_R_w2c' and 'cam_t_w2c' in mm, world z = table normal); "
-                "pass --table or add them to the camera file"
+                "add them to the camera file (or, for a BOP dataset with depth images, use eval, which fits the table)"
             )
         try:
             return cls.from_bop(entry["cam_R_w2c"], entry["cam_t_w2c"])
