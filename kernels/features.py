@@ -42,19 +42,12 @@ NOT_ON_MASK = -1.0e30
 @wp.struct
 class Surround:
     """What a candidate's windows see beyond its mask: the photo (use_fill 0) or the colour fill
-    (RGB in [0, 1])."""
+    (RGB in [0, 1]); with by_fraction 1 a point's cosine is weighted by the share of its window
+    that the candidate covers, so a window mostly made of the photo cannot borrow its match."""
 
     use_fill: int
     fill: wp.vec3
-
-
-@wp.struct
-class PointWeights:
-    """The photo's maps on its feature grid (rows, cols): a compared point scores
-    cos * gain[gy, gx] - offset[gy, gx]."""
-
-    gain: wp.array2d(dtype=float)
-    offset: wp.array2d(dtype=float)
+    by_fraction: int
 
 
 @wp.func
@@ -85,6 +78,27 @@ def on_mask(mask: wp.array(dtype=wp.uint8), roff: int, rb: wp.vec4i, u: int, v: 
     if in_box(rb, u, v):
         return mask[roff + (v - rb[1]) * rb[2] + (u - rb[0])] != wp.uint8(0)
     return False
+
+
+@wp.func
+def covered_fraction(mask: wp.array(dtype=wp.uint8), roff: int, rb: wp.vec4i, u: int, v: int, ks: int) -> float:
+    """Share of the ks x ks window centred on pixel (u, v) that is on the candidate's mask."""
+    half = ks // 2
+    n = int(0)
+    for dy in range(ks):
+        for dx in range(ks):
+            if on_mask(mask, roff, rb, u + dx - half, v + dy - half):
+                n += 1
+    return float(n) / float(ks * ks)
+
+
+@wp.struct
+class PointWeights:
+    """The photo's maps on its feature grid (rows, cols): a compared point scores
+    cos * gain[gy, gx] - offset[gy, gx]."""
+
+    gain: wp.array2d(dtype=float)
+    offset: wp.array2d(dtype=float)
 
 
 @wp.func
@@ -184,12 +198,15 @@ def feature_kernels(C: int):
         return out
 
     @wp.func
-    def weighted_cosine(f: vecC, g: vecC, g_norm: float, pw: PointWeights, gx: int, gy: int) -> float:
-        """cos(f, g) x gain - offset at grid cell (gx, gy); cos is 0 where either feature vanishes."""
+    def weighted_cosine(f: vecC, g: vecC, g_norm: float, pw: PointWeights, gx: int, gy: int, share: float) -> float:
+        """cos(f, g) x gain - offset at grid cell (gx, gy), the cosine weighted by share (1, or the window's
+        covered fraction); cos is 0 where either feature vanishes."""
         denom = wp.length(f) * g_norm
         cos = float(0.0)
         if denom > 1.0e-12:
             cos = wp.dot(f, g) / denom
+        if share < 1.0:
+            cos = cos * share
         return cos * pw.gain[gy, gx] - pw.offset[gy, gx]
 
     @wp.func
@@ -280,7 +297,10 @@ def feature_kernels(C: int):
             out[i] = value
             return
         f = conv_at(image, rgb, mask, pix_off[c], box[c], u, v, Wt, bias, ks, relu, sur)
-        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy)
+        share = float(1.0)
+        if sur.by_fraction != 0:
+            share = covered_fraction(mask, pix_off[c], box[c], u, v, ks)
+        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy, share)
 
     @wp.kernel(enable_backward=False, module="unique")
     def score_features(
@@ -294,6 +314,7 @@ def feature_kernels(C: int):
         ks: int,
         stride: int,
         relu: int,
+        sur: Surround,
         obs_feat: wp.array2d(dtype=vecC),
         obs_norm: wp.array2d(dtype=float),
         pw: PointWeights,
@@ -316,6 +337,9 @@ def feature_kernels(C: int):
         for ch in range(C):
             f[ch] = feat[at + ch * n]
         f = rectified(f, relu)
-        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy)
+        share = float(1.0)
+        if sur.by_fraction != 0:
+            share = covered_fraction(mask, pix_off[c], box[c], u, v, ks)
+        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy, share)
 
     return vecC, observed_features, score_points, score_features

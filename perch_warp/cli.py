@@ -88,6 +88,13 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
         "2 catches narrow score peaks between grid poses at about 7x the cost)",
     )
     g.add_argument(
+        "--refine-peaks",
+        type=int,
+        default=1,
+        help="refine this many distinct peaks of the grid search and keep the best refined pose (default: 1, "
+        "the grid's best only; more recovers small objects whose narrow peak loses on the grid)",
+    )
+    g.add_argument(
         "--image-scale",
         type=float,
         default=1.0,
@@ -241,6 +248,7 @@ def engine_config_from_args(args: argparse.Namespace):
         refine_xy_m=args.refine_xy,
         refine_yaw_rad=math.radians(args.refine_yaw),
         refine_cells=args.refine_cells,
+        refine_peaks=args.refine_peaks,
     )
 
 

@@ -26,6 +26,7 @@ from .features import FeatureWeights
 from .image import check_rgb
 from .kernels.features import PointWeights
 from .mesh import ObjectMesh
+from .peaks import distinct_peaks, peak_pool
 from .rarity import rarity_and_labels
 from .refine import cell_space
 from .render import MIN_DEPTH_M, RENDERERS, BoxProjector, MeshRenderer, auto_renderer
@@ -76,6 +77,9 @@ class EngineConfig:
     refine_xy_m: float = 0.002
     refine_yaw_rad: float = math.radians(1.0)
     refine_cells: int = 1  # grid steps either side of the best grid pose that the refinement searches
+    # Refine this many distinct peaks of the grid search (perch_warp.peaks), not only its best: the best
+    # refined pose wins (narrow peaks of small objects can lose on the grid and win refined). 1: the grid's best.
+    refine_peaks: int = 1
     # How kernel #1 finds each ray's surface (perch_warp.render): "bvh", "raster" (the same images),
     # or "auto": per search on the CPU, raster unless the mesh has many faces per pixel of the
     # candidates' boxes (render.auto_renderer); bvh on a GPU (the raster form is not measured there).
@@ -109,6 +113,8 @@ class EngineConfig:
                 "refinement targets (--refine-xy, --refine-yaw) must be positive, "
                 f"got {self.refine_xy_m} m and {math.degrees(self.refine_yaw_rad)} deg"
             )
+        if self.refine_peaks < 1:
+            raise PerchError(f"refine_peaks (--refine-peaks) must be at least 1, got {self.refine_peaks}")
         if self.refine_cells < 1:
             raise PerchError(f"refine_cells (--refine-cells) must be at least 1, got {self.refine_cells}")
         if self.conv not in CONVS:
@@ -259,11 +265,12 @@ class Engine:
             if not np.isfinite(scores).any():
                 raise PerchError(f"the search grid projects outside the image ({space.describe()})")
             # Stable order: ties go to the earlier candidate, so results are reproducible.
-            order = _top_indices(scores, cfg.top_k)
+            order = _top_indices(scores, self._pool())
             x, y, yaw = space.at(order if flat is None else flat[order])
             top = [(float(x[n]), float(y[n]), float(yaw[n]), float(scores[i])) for n, i in enumerate(order)]
             if cfg.refine:
-                top, extra["refine"] = self._refine(photo, camera, table, resting, space, top, timings)
+                top, extra["refine"] = self._refine_peaks(photo, camera, table, resting, space, top, timings)
+            top = top[: cfg.top_k]
             if probe is not None:
                 extra["probe"] = self._probe(photo, camera, table, resting, space, probe)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more (see _batched).
@@ -336,6 +343,30 @@ class Engine:
             return abs(c[0] - best[0]) < 1e-9 and abs(c[1] - best[1]) < 1e-9 and abs(c[2] - best[2]) < 1e-9
 
         return [best, *(c for c in top[1:] if not same(c))], info
+
+    def _pool(self) -> int:
+        """Best grid candidates a search keeps: the top-k reported, or more to find distinct peaks among."""
+        return peak_pool(self.config.top_k, self.config.refine_peaks if self.config.refine else 1)
+
+    def _refine_peaks(self, photo, camera, table, resting, space: SearchSpace, top: list, timings: dict):
+        """Engine._refine on each of the grid's best `refine_peaks` distinct peaks (perch_warp.peaks, cells
+        that cannot overlap); the best refined pose first, then the others' refined poses, then the runners-up."""
+        cfg = self.config
+        if cfg.refine_peaks <= 1:
+            return self._refine(photo, camera, table, resting, space, top, timings)
+        reach = cfg.refine_cells
+        idx = distinct_peaks(top, cfg.refine_peaks, 2 * reach * space.xy_step_m, 2 * reach * space.yaw_step_rad)
+        refined = []
+        for i in idx:
+            rest = [c for j, c in enumerate(top) if j != i]
+            out, info = self._refine(photo, camera, table, resting, space, [top[i], *rest], timings)
+            refined.append((out[0], info))
+        order = sorted(range(len(refined)), key=lambda n: -refined[n][0][3])  # stable: ties to the better grid peak
+        best, info = refined[order[0]]
+        info = {**info, "peaks": [{"from": r[1]["from"], "score": r[0][3]} for r in refined]}
+        firsts = [refined[n][0] for n in order]
+        seen = {tuple(top[i][:3]) for i in idx}
+        return [*firsts, *(c for c in top if tuple(c[:3]) not in seen)], info
 
     def _best_in(self, photo, camera, table, resting, cell: SearchSpace, wrap: bool, timings: dict):
         """The best pose (x_m, y_m, yaw_rad, score) of a small space searched whole (pruned or exhaustive:
@@ -608,7 +639,7 @@ class Engine:
         scoring only the candidates that could be in it. Returns the scores (-inf where not scored)
         in candidates()'s order and what the search did."""
         scores = np.full(len(space), -np.inf)
-        k = self.config.top_k
+        k = self._pool()
 
         def kth_best(scored: np.ndarray) -> float:
             return _kth_largest(scores[scored], k)

@@ -75,8 +75,8 @@ class FeatureScorer:
     ):
         if conv not in ("warp", "torch"):
             raise PerchError(f"conv must be warp or torch, got {conv!r}")
-        if surround not in ("photo", "fill"):
-            raise PerchError(f"surround must be photo or fill, got {surround!r}")
+        if surround not in ("photo", "fill", "weighted"):
+            raise PerchError(f"surround must be photo, fill or weighted, got {surround!r}")
         self.device = device
         self.conv = conv
         self.ks = weights.kernel_size
@@ -89,10 +89,12 @@ class FeatureScorer:
             self.bias = self.vecC(*b.tolist())
             self._dummy_rgb = wp.zeros(1, dtype=wp.vec3)
             self._dummy_mask = wp.zeros(1, dtype=wp.uint8)
-        # Beyond the mask a window sees the photo, or the preprocessing mean: conv1's zero input.
+        # Beyond the mask a window sees the photo, or the preprocessing mean (conv1's zero input);
+        # "weighted": the photo, with the cosine weighted by the window's covered fraction.
         self.surround = Surround()
         self.surround.use_fill = int(surround == "fill")
         self.surround.fill = wp.vec3(*(float(m) for m in weights.mean))
+        self.surround.by_fraction = int(surround == "weighted")
         self._buffers: queue.SimpleQueue = queue.SimpleQueue()  # free buffer sets of the torch form
         if conv == "torch":
             import torch
@@ -177,7 +179,7 @@ class FeatureScorer:
                         self.k_score_features,
                         dim=n_pts,
                         inputs=[feat, batch.mask, batch.pix_off, batch.box, wp.array(gboxes, dtype=wp.vec4i)]
-                        + [offsets, batch.n, self.ks, self.stride, self.relu, obs_feat, obs_norm, pw],
+                        + [offsets, batch.n, self.ks, self.stride, self.relu, self.surround, obs_feat, obs_norm, pw],
                         outputs=[out],
                     )
                 finally:

@@ -13,7 +13,9 @@ silhouette points (kernels/reduce.py). `thesis` is the thesis's formula exactly
 Terms (each off in `thesis`):
 - ``surround``: what an edge window sees beyond the silhouette. ``photo`` (thesis):
   the photo's pixels, so a silhouette that touches a strong edge borrows it; ``fill``:
-  the weights' preprocessing mean (zero input to conv1), so only the render counts.
+  the weights' preprocessing mean (zero input to conv1), so only the render counts; ``weighted``:
+  the photo, with the cosine weighted by the share of the window the silhouette covers (an edge
+  window still checks the outline, but cannot borrow a match from the photo's own pixels).
 - ``background`` λ: offset = λ * gain * max(0, cos(B, I)), B the photo's commonest
   appearance (the centroid of its largest k-means cluster, usually the table): a
   point earns only what the render explains better than the table would.
@@ -38,7 +40,7 @@ import numpy as np
 
 from .errors import PerchError
 
-SURROUNDS = ("photo", "fill")
+SURROUNDS = ("photo", "fill", "weighted")
 RARITY_MODES = ("max", "total")
 
 

@@ -203,7 +203,14 @@ def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(sce
 
 @pytest.mark.parametrize(
     "score",
-    ["surround=fill", "background=0.7", "shrink=12", "rarity=total,inits=2", "surround=fill,background=0.5,shrink=8"],
+    [
+        "surround=fill",
+        "surround=weighted",
+        "background=0.7",
+        "shrink=12",
+        "rarity=total,inits=2",
+        "surround=fill,background=0.5,shrink=8",
+    ],
 )
 def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
     """bound >= score for every candidate of random poses, whatever the score's terms (score_terms'

@@ -46,7 +46,9 @@ def test_caffe_preprocessing_is_rgb255_minus_mean(caffe_weights):
     assert np.allclose(got[0, 0], ref, rtol=1e-4, atol=1e-2)
 
 
-def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, stride, rarity, offset=None, fill=False):
+def _numpy_scores(
+    img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, stride, rarity, offset=None, fill=False, weighted=False
+):
     """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
     in float64, cosine with the photo's feature, times rarity, minus offset."""
     offset = np.zeros_like(rarity) if offset is None else offset
@@ -66,6 +68,10 @@ def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, str
             if 0 <= y0 + yy < comp.shape[0] and 0 <= x0 + xx < comp.shape[1]:
                 comp[y0 + yy, x0 + xx] = crgb[yy, xx]
         compn = (comp - np.array(w.mean)) / np.array(w.std)
+        full = np.zeros((comp.shape[0] + 2 * half, comp.shape[1] + 2 * half), bool)  # the mask, padded by half
+        for yy, xx in zip(*np.nonzero(cmask), strict=True):
+            if -half <= y0 + yy < comp.shape[0] + half and -half <= x0 + xx < comp.shape[1] + half:
+                full[y0 + yy + half, x0 + xx + half] = True
         for gy in range(gy0, gy0 + gh):
             for gx in range(gx0, gx0 + gw):
                 u, v = half + stride * gx, half + stride * gy
@@ -84,11 +90,13 @@ def _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, str
                     (1, 2, 3)
                 )
                 fo += w.bias
-                out.append(f @ fo / (np.linalg.norm(f) * np.linalg.norm(fo)) * rarity[gy, gx] - offset[gy, gx])
+                share = full[v : v + 2 * half + 1, u : u + 2 * half + 1].mean() if weighted else 1.0
+                cos = f @ fo / (np.linalg.norm(f) * np.linalg.norm(fo))
+                out.append(cos * share * rarity[gy, gx] - offset[gy, gx])
     return np.array(out)
 
 
-@pytest.mark.parametrize("surround", ["photo", "fill"])
+@pytest.mark.parametrize("surround", ["photo", "fill", "weighted"])
 @pytest.mark.parametrize("conv", ["warp", "torch"])
 def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround):
     """Both conv forms, windows composited onto the photo (thesis) or onto the fill, with an offset map
@@ -122,7 +130,18 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround):
     vals, pt_off = sc.score_points(image, batch, gboxes, obs, wp.array(norms, device=DEVICE), pw)
     got = vals.numpy()
     ref = _numpy_scores(
-        img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity, offset, surround == "fill"
+        img,
+        rgb,
+        mask,
+        pix_off,
+        boxes,
+        gboxes,
+        random_weights,
+        stride,
+        rarity,
+        offset,
+        surround == "fill",
+        surround == "weighted",
     )
     assert got.shape == ref.shape and pt_off.numpy()[-1] == len(ref)
     off = ref == NOT_ON_MASK

@@ -9,8 +9,10 @@ then re-score them under every candidate score (issue 17's development protocol)
 `collect` runs, per target (thesis protocol: height, roll and pitch from the ground truth), the
 exact (pruned) search of the default region on a coarse grid under the thesis's score and keeps
 its best `--pool` poses (the competitors), plus the ground truth's (x, y, yaw) on the table.
-`rescore` scores at full resolution, under each score, the pool and the ground truth's cell
-(within 1 cm and 5 deg of it at 5 mm / 2.5 deg, what a search would have to find), takes the best of the union as a
+`rescore` scores at full resolution, under each score, the pool, the ground truth's cell (within
+1 cm and 5 deg of it at 5 mm / 2.5 deg, what a search would have to find) and the same cell around
+each of the pool's best `--peaks` distinct poses away from the truth (so the distractors are refined
+like the truth), takes the best of the union as a
 search would, and reports per score: ADD-S AUC, ADD-S < 2 cm, how many targets the ground
 truth's cell wins (the score "explains" the photo best at the truth), paired against the first
 score with a bootstrap interval of the difference. The ground truth only defines the cell that
@@ -105,13 +107,46 @@ def _save(path: Path, args: argparse.Namespace, rows: list[dict]) -> None:
     tmp.replace(path)
 
 
-def _gt_cell(gt: list[float]) -> np.ndarray:
-    """(125, 3) poses within 1 cm and 5 deg of the ground truth, at 5 mm / 2.5 deg: what a full search
-    on the default 1 cm / 5 deg grid, refined, would see near the truth."""
+def _cell(pose) -> np.ndarray:
+    """(125, 3) poses within 1 cm and 5 deg of a pose, at 5 mm / 2.5 deg: what a search on the default
+    1 cm / 5 deg grid whose best peaks are refined would see there."""
     dxy = np.linspace(-0.01, 0.01, 5)
     dyaw = np.radians(np.linspace(-5.0, 5.0, 5))
-    X, Y, A = np.meshgrid(gt[0] + dxy, gt[1] + dxy, gt[2] + dyaw, indexing="ij")
+    X, Y, A = np.meshgrid(pose[0] + dxy, pose[1] + dxy, pose[2] + dyaw, indexing="ij")
     return np.stack([X.ravel(), Y.ravel(), A.ravel()], -1)
+
+
+GRID_XY_M, GRID_YAW_RAD = 0.01, math.radians(5.0)  # the default grid; the default region's origin is on it
+
+
+def _grid_neighbours(pose) -> np.ndarray:
+    """(8, 3) the default grid's poses around a pose: floor and ceiling in x, y and yaw."""
+    axes = [
+        np.floor(v / s) * s + np.array([0.0, s])
+        for v, s in zip(pose, (GRID_XY_M, GRID_XY_M, GRID_YAW_RAD), strict=True)
+    ]
+    X, Y, A = np.meshgrid(*axes, indexing="ij")
+    return np.stack([X.ravel(), Y.ravel(), A.ravel()], -1)
+
+
+def _on_grid(poses: np.ndarray) -> np.ndarray:
+    """Which poses lie on the default grid (multiples of 1 cm and 5 deg)."""
+    q = poses / np.array([GRID_XY_M, GRID_XY_M, GRID_YAW_RAD])
+    return np.all(np.abs(q - np.round(q)) < 1e-6, axis=1)
+
+
+def far_peaks(pool: np.ndarray, gt, n: int, apart_m: float = 0.03, away_m: float = 0.02) -> np.ndarray:
+    """The best n pool poses (pool is best first) farther than away_m from the truth and apart_m from
+    each other (greedy non-maximum suppression in x, y): the distractors that get a cell like the truth's."""
+    keep: list[np.ndarray] = []
+    for p in pool:
+        if np.hypot(p[0] - gt[0], p[1] - gt[1]) <= away_m:
+            continue
+        if all(np.hypot(p[0] - q[0], p[1] - q[1]) > apart_m for q in keep):
+            keep.append(p)
+        if len(keep) == n:
+            break
+    return np.array(keep).reshape(-1, 3)
 
 
 def rescore(args: argparse.Namespace) -> None:
@@ -141,26 +176,53 @@ def rescore(args: argparse.Namespace) -> None:
             eng = engines[tg.obj_id]
             table, _ = tables.get(im)
             resting, *_ = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
-            cell = _gt_cell(row["gt"])
+            cell = _cell(row["gt"])
             pool = np.asarray(row["pool"], dtype=np.float64).reshape(-1, 3)
-            poses = np.concatenate([pool, cell])
+            # Distractors are refined like the truth, so that neither side gains from the finer cell.
+            peaks = [_cell(p) for p in far_peaks(pool, row["gt"], args.peaks)]
+            others = np.concatenate([pool, *peaks])
+            grid_truth = _grid_neighbours(row["gt"])
+            poses = np.concatenate([others, cell, grid_truth])
             sc = eng.score(load_rgb(im.rgb), im.camera, table, resting, *poses.T)
-            best = int(np.argmax(sc))
-            R, t = model_to_camera(table, resting, *poses[best : best + 1].T)
-            e = pose_error.adi(R[0], t[0], tg.R_gt, tg.t_gt_m, points[tg.obj_id])
-            pool_best = float(sc[: len(pool)].max())
-            cell_best = float(sc[len(pool) :].max())
-            out.append({"key": row["key"], "obj_id": tg.obj_id, "adds_m": e, "cell": cell_best, "pool": pool_best})
+            n_o, n_c = len(others), len(cell)
+
+            def adds(i: int, table=table, resting=resting, poses=poses, tg=tg) -> float:
+                R, t = model_to_camera(table, resting, *poses[i : i + 1].T)
+                return pose_error.adi(R[0], t[0], tg.R_gt, tg.t_gt_m, points[tg.obj_id])
+
+            # "fine": the best peaks are all refined (truth's cell and the distractors' cells compete).
+            e = adds(int(np.argmax(sc[: n_o + n_c])))
+            # "grid": only the grid's best is refined: the truth competes with its grid neighbours only, and
+            # wins refined (its cell's best) when one of them beats every grid pose of the distractors.
+            on_grid = np.flatnonzero(_on_grid(others))
+            far = on_grid[np.argmax(sc[on_grid])]
+            e_grid = adds(n_o + int(np.argmax(sc[n_o : n_o + n_c]))) if sc[n_o + n_c :].max() > sc[far] else adds(far)
+            pool_best = float(sc[:n_o].max())
+            cell_best = float(sc[n_o : n_o + n_c].max())
+            grid_best = float(sc[n_o + n_c :].max())
+            out.append(
+                {
+                    "key": row["key"],
+                    "obj_id": tg.obj_id,
+                    "adds_m": e,
+                    "adds_grid_m": e_grid,
+                    "cell": cell_best,
+                    "grid": grid_best,
+                    "pool": pool_best,
+                }
+            )
             if args.verbose:
                 print(
-                    f"  {row['key']} obj {tg.obj_id}: truth's cell {cell_best:.4f}, pool {pool_best:.4f}, "
-                    f"ADD-S {100 * e:.2f} cm",
+                    f"  {row['key']} obj {tg.obj_id}: truth's cell {cell_best:.4f} (grid {grid_best:.4f}), "
+                    f"others {pool_best:.4f}, ADD-S {100 * e:.2f} cm (grid only: {100 * e_grid:.2f} cm)",
                     file=sys.stderr,
                 )
         results[spec] = out
         e = np.array([o["adds_m"] for o in out])
+        g = np.array([o["adds_grid_m"] for o in out])
         print(
             f"{spec:40s} n {len(e)}  AUC {pose_error.auc(e):6.2f}  <2cm {100 * np.mean(e < 0.02):6.2f} %  "
+            f"grid only: AUC {pose_error.auc(g):6.2f}  <2cm {100 * np.mean(g < 0.02):6.2f} %  "
             f"({time.perf_counter() - t0:.0f} s)",
             file=sys.stderr,
             flush=True,
@@ -177,7 +239,10 @@ def summarise(results: dict[str, list[dict]], base: str, n_boot: int = 2000, see
     e0 = np.array([o["adds_m"] for o in results[base]])
     n = len(e0)
     idx = rng.integers(0, n, (n_boot, n)) if n else np.zeros((0, 0), int)
-    lines = [f"{'score':40s} {'n':>3s} {'AUC':>7s} {'dAUC [95% CI]':>22s} {'<2cm %':>7s} {'d<2cm [95% CI]':>22s}"]
+    lines = [
+        f"{'score':40s} {'n':>3s} {'AUC':>7s} {'dAUC [95% CI]':>22s} {'<2cm %':>7s} {'d<2cm [95% CI]':>22s}"
+        f" {'grid-only AUC':>13s} {'<2cm':>6s}"
+    ]
     table = {}
     for spec, out in results.items():
         e = np.array([o["adds_m"] for o in out])
@@ -185,7 +250,10 @@ def summarise(results: dict[str, list[dict]], base: str, n_boot: int = 2000, see
         w, w0 = 100.0 * (e < 0.02), 100.0 * (e0 < 0.02)
         da = (a - a0)[idx].mean(1) if n else np.zeros(1)
         dw = (w - w0)[idx].mean(1) if n else np.zeros(1)
+        g = np.array([o["adds_grid_m"] for o in out])
         row = {
+            "grid_only_auc": float(100 * np.maximum(0, 1 - g / 0.1).mean()) if n else float("nan"),
+            "grid_only_below_2cm": float(100 * (g < 0.02).mean()) if n else float("nan"),
             "n": int(n),
             "auc": float(a.mean()) if n else float("nan"),
             "below_2cm": float(w.mean()) if n else float("nan"),
@@ -199,6 +267,7 @@ def summarise(results: dict[str, list[dict]], base: str, n_boot: int = 2000, see
             f"{spec:40s} {n:3d} {row['auc']:7.2f} {row['d_auc']:+7.2f} [{row['d_auc_ci'][0]:+6.2f},"
             f"{row['d_auc_ci'][1]:+6.2f}] {row['below_2cm']:7.2f} {row['d_below_2cm']:+7.2f} "
             f"[{row['d_below_2cm_ci'][0]:+6.2f},{row['d_below_2cm_ci'][1]:+6.2f}]"
+            f" {row['grid_only_auc']:13.2f} {row['grid_only_below_2cm']:6.2f}"
         )
     return {"base": base, "table": table, "text": "\n".join(lines)}
 
@@ -223,6 +292,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("pool", type=Path)
     r.add_argument("--score", action="append", required=True, help="a score name or terms; repeat")
     r.add_argument("--limit", type=int)
+    r.add_argument("--peaks", type=int, default=3, help="distinct far pool peaks refined like the truth (default 3)")
     r.add_argument("--verbose", action="store_true", help="a line per target")
     r.add_argument("--out", type=Path)
     args = p.parse_args(argv)
