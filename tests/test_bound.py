@@ -32,12 +32,9 @@ def _space(scene, half=0.15, step=0.03, yaw_step_deg=30.0):
 
 def _candidates(engine, scene, space, camera):
     """Poses, boxes and live candidates as the engine makes them, plus the photo's arrays."""
-    engine._n_batches = engine._n_rays = engine._n_bound_rays = 0
-    timings: dict = {}
-    photo = engine._photo(scene.image, camera, timings)
-    x, y, yaw = space.candidates()
-    R, t, boxes, gboxes, live = engine._candidates(camera, scene.table, scene.resting, x, y, yaw, timings)
-    return photo, R[live], t[live], boxes[live], gboxes[live]
+    service = engine.scoring(scene.image, camera, scene.table, scene.resting)
+    R, t, boxes, gboxes, live = service.candidates(*space.candidates())
+    return service.photo, R[live], t[live], boxes[live], gboxes[live]
 
 
 RENDERERS = pytest.mark.parametrize("renderer", ["bvh", "raster"])

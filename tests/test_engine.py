@@ -7,13 +7,14 @@ import numpy as np
 import pytest
 from _device import DEVICE
 
-import perch_warp.engine as engine_mod
+import perch_warp.search.scoring as scoring
 from perch_warp.camera import camera_from_entry
 from perch_warp.demo import demo_scene
-from perch_warp.engine import Engine, EngineConfig, _top_indices
+from perch_warp.engine import Engine, EngineConfig
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
 from perch_warp.pose_error import adi
+from perch_warp.search.base import top_indices
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import Table, decompose_on_table, model_to_camera
 
@@ -119,9 +120,9 @@ def test_top_indices_are_a_stable_sorts_first_k():
     scores = rng.integers(0, 6, 300).astype(float)  # many ties
     scores[rng.choice(300, 40, replace=False)] = -np.inf
     for k in (1, 5, 17, 300, 400):
-        np.testing.assert_array_equal(_top_indices(scores, k), np.argsort(-scores, kind="stable")[:k])
+        np.testing.assert_array_equal(top_indices(scores, k), np.argsort(-scores, kind="stable")[:k])
     few = np.array([-np.inf, 2.0, -np.inf])
-    np.testing.assert_array_equal(_top_indices(few, 5), [1, 0, 2])
+    np.testing.assert_array_equal(top_indices(few, 5), [1, 0, 2])
 
 
 @pytest.mark.parametrize("search", ["exhaustive", "pruned", "coarse-to-fine"])
@@ -134,14 +135,14 @@ def test_candidates_are_set_up_a_chunk_at_a_time(scene, random_weights, monkeypa
     whole = Engine(scene.mesh, random_weights, DEVICE, cfg).estimate(*args)
 
     sizes = []
-    setup = Engine._candidates
+    setup = scoring.ScoringService.candidates
 
-    def spy(self, camera, table, resting, x, y, yaw, timings):
+    def spy(self, x, y, yaw):
         sizes.append(len(x))
-        return setup(self, camera, table, resting, x, y, yaw, timings)
+        return setup(self, x, y, yaw)
 
-    monkeypatch.setattr(engine_mod, "SETUP_CHUNK", 23)
-    monkeypatch.setattr(Engine, "_candidates", spy)
+    monkeypatch.setattr(scoring, "SETUP_CHUNK", 23)
+    monkeypatch.setattr(scoring.ScoringService, "candidates", spy)
     chunked = Engine(scene.mesh, random_weights, DEVICE, cfg).estimate(*args)
     assert sizes and max(sizes) <= 23
     if search != "coarse-to-fine":  # every candidate set up, in chunks

@@ -62,7 +62,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"conv_compare: error: {e}", file=sys.stderr)
         return 1
     e = engines["warp"]
-    photo = e._photo(w.image, w.camera, {})
+    photo = e.scoring(w.image, w.camera, w.table, w.resting).photo
     R, t, boxes = sample_grid_poses(w, args.poses, args.seed, lambda R, t: e.boxes(w.camera, R, t))
     gboxes = grid_boxes(boxes, weights.kernel_size, e.config.stride)
     renderer = "raster" if wp.get_device(args.device).is_cpu else "bvh"

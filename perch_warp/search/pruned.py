@@ -1,0 +1,119 @@
+"""The pruned search: the exhaustive search's top-k, scoring only the candidates that could be in it.
+
+Every candidate is bounded by its silhouette (perch_warp.bound), then scored best bound first until
+no remaining bound reaches the k-th best score. best_first is shared with the pyramid search.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..bound import next_to_score
+from ..search_space import SearchSpace
+from . import scoring
+from .base import Outcome, kth_largest
+from .scoring import PoseSource, ScoringService, SearchStats
+
+
+@dataclass
+class BestFirst:
+    """What best_first did: the indices scored, rounds of batches, every candidate's bound (-inf where
+    not bounded) and how many were bounded."""
+
+    scored: np.ndarray
+    rounds: int
+    bounds: np.ndarray
+    bounded: int
+
+
+def run(service: ScoringService, space: SearchSpace) -> Outcome:
+    """Scores (-inf where not scored) in the space's order and what the search did."""
+    stats = SearchStats()
+    scores = np.full(len(space), -np.inf)
+    k = service.config.pool
+
+    def kth_best(scored: np.ndarray) -> float:
+        return kth_largest(scores[scored], k)
+
+    bf = best_first(service, PoseSource.of_space(space), scores, kth_best, stats)
+    extra = {
+        "bounded": bf.bounded,
+        "scored": len(bf.scored),
+        "rounds": bf.rounds,
+        "bound_rays": stats.bound_rays,
+        "k": k,  # the rank whose score a bound had to reach
+    }
+    return Outcome(scores, len(bf.scored), stats, extra=extra)
+
+
+def _bound_all(service: ScoringService, poses: PoseSource, stats: SearchStats):
+    """Every candidate's bound (-inf without feature points), its box size in pixels, and how many show points."""
+    bounds = np.full(poses.n, -np.inf)
+    box_px = np.zeros(poses.n, dtype=np.int64)
+    n_live = 0
+    for idx in poses.chunks():
+        c = service.setup(poses, idx)
+        box_px[idx] = c.boxes[:, 2].astype(np.int64) * c.boxes[:, 3]
+        part = np.full(len(idx), -np.inf)
+        service.bound_some(c, c.live, part, stats)
+        bounds[idx] = part
+        n_live += len(c.live)
+    return bounds, box_px, n_live
+
+
+def best_first(service: ScoringService, poses: PoseSource, scores: np.ndarray, kth_best, stats: SearchStats):
+    """Bound the candidates of poses (those showing feature points), then score them best bound
+    first, a round of batches at a time, until no remaining bound reaches kth_best(indices scored
+    so far). scores[i] stays -inf for the others: those without feature points (whose score is -inf)
+    and those ruled out (whose score is below the final threshold). Poses and boxes are set up a chunk
+    at a time, for the bounds and again for each round; only a bound and a box size per candidate are
+    kept. The progress bar counts a candidate as done once it is scored or can no longer be (its bound
+    below the threshold so far, or no feature points), so that its rate and time left follow where the
+    search will really end. Returns a BestFirst."""
+    bounds, box_px, n_live = _bound_all(service, poses, stats)
+    # A candidate without feature points scores -inf whatever it shows: never worth scoring.
+    order = np.argsort(-bounds, kind="stable")
+    order = order[np.isfinite(bounds[order])]
+    ranked = bounds[order]
+    report = _reporter(service.bar, n_live)
+    # A round: about one budget of rays per thread, so that the first rounds set the threshold
+    # early and each later one stops as soon as the bounds fall below it.
+    per_round = service.budget() * service.threads()
+    threshold = kth_best(order[:0])
+    pos = 0
+    rounds = 0
+    while pos < len(order):
+        end = min(next_to_score(ranked, pos, threshold), pos + scoring.SETUP_CHUNK)
+        if end <= pos:
+            break
+        sizes = box_px[order[pos:end]]
+        end = pos + max(1, int(np.searchsorted(np.cumsum(sizes), per_round, side="right")))
+        idx = order[pos:end]
+        c = service.setup(poses, idx)
+        part = np.full(len(idx), -np.inf)
+        service.score_some(c, np.arange(len(idx)), part, stats, progress=False)
+        scores[idx] = part
+        pos = end
+        rounds += 1
+        threshold = kth_best(order[:pos])
+        report(n_live - (next_to_score(ranked, pos, threshold) - pos))
+    report(n_live)
+    return BestFirst(order[:pos], rounds, bounds, n_live)
+
+
+def _reporter(bar, n_live: int):
+    """report(done): the bar's count raised to `done` (never lowered); the bar grows by n_live first."""
+    if bar is not None:
+        bar.total += n_live
+        bar.refresh()
+    reported = 0
+
+    def report(done: int) -> None:
+        nonlocal reported
+        if bar is not None and done > reported:
+            bar.update(done - reported)
+            reported = done
+
+    return report

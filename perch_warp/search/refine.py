@@ -1,0 +1,94 @@
+"""The refinement below the grid (the best grid pose's cell searched at a finer resolution,
+perch_warp.refine.cell_space) and the probe diagnostic that searches any pose's cell the same way."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+
+from ..peaks import distinct_peaks
+from ..refine import cell_space
+from ..search_space import FULL_CIRCLE, SearchSpace
+from . import exhaustive, pruned
+from .base import Outcome, auto_search
+from .scoring import ScoringService
+
+
+def cell_search(grid_search: str, device: str) -> str:
+    """The search a cell is searched with: the grid's (pruned or exhaustive: the same best); after
+    coarse-to-fine, the one "auto" picks for the device."""
+    return grid_search if grid_search in ("exhaustive", "pruned") else auto_search(device)
+
+
+def best_in(service: ScoringService, cell: SearchSpace, wrap: bool, search: str):
+    """The best pose (x_m, y_m, yaw_rad, score) of a small space searched whole by `search`
+    ("exhaustive" or "pruned") on a quiet service, and the search's Outcome."""
+    out: Outcome = (pruned.run if search == "pruned" else exhaustive.run)(service, cell)
+    scores = out.scores
+    i = int(np.argmax(scores))  # the first of equal maxima
+    (x_i,), (y_i,), (yaw_i,) = cell.at(np.array([i]))
+    # A cell may reach below 0 on the full circle: the same poses as below 2π, reported there.
+    yaw_i = float(yaw_i) % (2 * math.pi) if wrap else float(yaw_i)
+    return (float(x_i), float(y_i), yaw_i, float(scores[i])), out
+
+
+def refine(service: ScoringService, space: SearchSpace, top: list, grid_search: str):
+    """The best grid pose refined below the grid: the best of its cell at the fine resolution. It
+    replaces the first of top [(x_m, y_m, yaw_rad, score)]; the runners-up stay. Timed as one "refine"
+    stage (wall time); its rays are counted apart from the grid search's. Returns (top, info)."""
+    cfg = service.config
+    t = time.perf_counter()
+    x0, y0, yaw0, s0 = top[0]
+    cell = cell_space(space, x0, y0, yaw0, cfg.refine_xy_m, cfg.refine_yaw_rad, cfg.refine_cells)
+    search = cell_search(grid_search, service.device)
+    best, out = best_in(service.quiet(), cell, space.full_circle, search)
+    info = {
+        "step_xy_m": cell.xy_step_m,
+        "step_yaw_deg": math.degrees(cell.yaw_step_rad),
+        "cell": cell.describe(),
+        "search": search,
+        "candidates": len(cell),
+        "evaluated": int(np.isfinite(out.scores).sum()),
+        "from": {"x_m": x0, "y_m": y0, "yaw_deg": math.degrees(yaw0), "score": s0},
+        "score_gain": best[3] - s0,
+        "rays": out.stats.rays,
+    }
+    service.lap("refine", t)
+
+    def same(c) -> bool:
+        return abs(c[0] - best[0]) < 1e-9 and abs(c[1] - best[1]) < 1e-9 and abs(c[2] - best[2]) < 1e-9
+
+    return [best, *(c for c in top[1:] if not same(c))], info
+
+
+def probe(service: ScoringService, space: SearchSpace, pose: tuple[float, float, float], grid_search: str) -> dict:
+    """The best of pose's cell at the refinement's resolution (not cut to the space), for analysis:
+    it never changes the answer, and its cost is not the search's."""
+    cfg = service.config
+    everywhere = SearchSpace((-1e6, 1e6), (-1e6, 1e6), space.xy_step_m, FULL_CIRCLE, space.yaw_step_rad)
+    x, y, yaw = (float(v) for v in pose)
+    cell = cell_space(everywhere, x, y, yaw, cfg.refine_xy_m, cfg.refine_yaw_rad, cfg.refine_cells)
+    search = cell_search(grid_search, service.device)
+    (bx, by, byaw, score), _ = best_in(service.quiet(), cell, True, search)
+    return {"x_m": bx, "y_m": by, "yaw_rad": byaw, "score": score, "candidates": len(cell), "at": [x, y, yaw]}
+
+
+def refine_peaks(service: ScoringService, space: SearchSpace, top: list, grid_search: str):
+    """`refine` on each of the grid's best `refine_peaks` distinct peaks (perch_warp.peaks: cells that
+    cannot overlap); the best refined pose first, then the other peaks' refined poses, then the
+    runners-up. With one peak, `refine` itself. Returns (top, info); info["peaks"] lists each peak."""
+    cfg = service.config
+    if cfg.refine_peaks <= 1:
+        return refine(service, space, top, grid_search)
+    reach = cfg.refine_cells
+    idx = distinct_peaks(top, cfg.refine_peaks, 2 * reach * space.xy_step_m, 2 * reach * space.yaw_step_rad)
+    refined = []
+    for i in idx:
+        out, info = refine(service, space, [top[i], *(c for j, c in enumerate(top) if j != i)], grid_search)
+        refined.append((out[0], info))
+    order = sorted(range(len(refined)), key=lambda n: -refined[n][0][3])  # stable: ties to the better grid peak
+    best_info = {**refined[order[0]][1], "peaks": [{"from": r[1]["from"], "score": r[0][3]} for r in refined]}
+    seen = {tuple(top[i][:3]) for i in idx}
+    return [*(refined[n][0] for n in order), *(c for c in top if tuple(c[:3]) not in seen)], best_info

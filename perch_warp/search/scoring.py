@@ -1,0 +1,381 @@
+"""The per-photo scoring service: every search's only way to score or bound candidate poses.
+
+It owns one photo on the device (features, the point-weight maps gain/offset, the ceiling map), the
+camera, table and resting pose, the renderer this search uses, batching over a thread pool on the
+CPU, the stage timings and the progress bar. `score(poses)` and `bound(poses)` take table-frame
+(x_m, y_m, yaw_rad) arrays or a PoseSource (set up a chunk at a time) and return one float64 per
+pose; what they cost (batches, rays) is added to the SearchStats the caller passes.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import time
+from concurrent.futures import ThreadPoolExecutor, as_completed
+from contextlib import contextmanager
+from dataclasses import dataclass
+from typing import NamedTuple
+
+import numpy as np
+import warp as wp
+
+from ..bound import silhouette_bounds
+from ..camera import Camera
+from ..errors import PerchError
+from ..features import FeatureWeights
+from ..image import check_rgb
+from ..kernels.features import PointWeights
+from ..rarity import rarity_and_labels
+from ..render import MIN_DEPTH_M, BoxProjector
+from ..score import FeatureScorer, grid_boxes, grid_shape, point_weights, top_alpha_mean_device
+from ..score_terms import ScoreTerms, background_offset
+from ..search_space import SearchSpace
+from ..table import RestingPose, Table, model_to_camera
+
+# Candidates whose poses and boxes are set up at once (host and device memory): a search keeps
+# a few numbers per candidate of its space (score, bound, box size) and nothing larger, so no
+# step needs all candidates' poses at once, however large the space.
+SETUP_CHUNK = 1 << 17
+
+
+@dataclass
+class SearchStats:
+    """What one search cost: batches launched, pixels ray-cast by kernel #1 (the rendered boxes'
+    areas) and rays cast for silhouette bounds (one per feature point)."""
+
+    batches: int = 0
+    rays: int = 0
+    bound_rays: int = 0
+
+
+class PoseSource:
+    """Candidates 0..n-1, their table-frame (x_m, y_m, yaw_rad) given by at(indices); their camera
+    poses and boxes are set up a chunk at a time (ScoringService.setup)."""
+
+    def __init__(self, n: int, at) -> None:
+        self.n, self.at = n, at
+
+    @classmethod
+    def of_space(cls, space: SearchSpace) -> PoseSource:
+        return cls(len(space), space.at)
+
+    @classmethod
+    def of_arrays(cls, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> PoseSource:
+        return cls(len(x), lambda i: (x[i], y[i], yaw[i]))
+
+    def chunks(self):
+        for lo in range(0, self.n, SETUP_CHUNK):
+            yield np.arange(lo, min(self.n, lo + SETUP_CHUNK))
+
+
+class Candidates(NamedTuple):
+    """Candidates set up for scoring: model-to-camera R (N, 3, 3), t (N, 3) metres, pixel boxes,
+    feature-grid boxes, and the indices of those showing at least one feature point."""
+
+    R: np.ndarray
+    tr: np.ndarray
+    boxes: np.ndarray
+    gboxes: np.ndarray
+    live: np.ndarray
+
+
+@dataclass
+class Photo:
+    """One photo on the device: image, feature map, feature norms, and on the feature grid the
+    maps kernel #2 weighs a point's cosine by (gain = rarity, offset) and their ceiling = gain - offset,
+    each point's largest possible value (the pruned search's bound)."""
+
+    image: wp.array
+    obs: wp.array
+    norm: wp.array
+    weights: PointWeights
+    ceiling: wp.array
+    rows: int
+    cols: int
+
+
+@dataclass(frozen=True)
+class Backends:
+    """What is built once per mesh (and weights, device): renderer, scorer, box projector."""
+
+    renderer: object  # render.MeshRenderer
+    scorer: FeatureScorer
+    boxes: BoxProjector
+    weights: FeatureWeights
+    device: str
+
+
+def batch_pixels(device: str) -> int:
+    """Rays per batch sized to the device: ~13 bytes per rendered pixel plus scores; keep a batch to
+    ~1/8 of free GPU memory."""
+    if device.startswith("cuda"):
+        free = wp.get_device(device).free_memory
+        return int(max(1 << 22, min(1 << 28, free // 8 // 16)))
+    return 1 << 22
+
+
+def cpu_threads(device: str, configured: int | None) -> int:
+    """Threads scoring batches at once: 1 on a GPU (one stream), else the configured or one per core."""
+    if not wp.get_device(device).is_cpu:
+        return 1
+    if configured is not None:
+        return configured
+    return len(os.sched_getaffinity(0)) if hasattr(os, "sched_getaffinity") else os.cpu_count() or 1
+
+
+def lap(device: str, timings: dict, stage: str, t0: float) -> float:
+    """Add the seconds since t0 (device synchronised) to timings[stage]; returns now."""
+    wp.synchronize_device(device)
+    t1 = time.perf_counter()
+    timings[stage] = timings.get(stage, 0.0) + (t1 - t0)
+    return t1
+
+
+def photo_on_device(backends: Backends, config, terms: ScoreTerms, image_rgb, camera: Camera, timings: dict) -> Photo:
+    """The photo's feature map, norms and rarity, on the device (once per photo)."""
+    image_rgb = check_rgb(image_rgb)
+    if image_rgb.shape[:2] != (camera.height, camera.width):
+        raise PerchError(
+            f"image is {image_rgb.shape[1]}x{image_rgb.shape[0]} but the camera is {camera.width}x{camera.height}"
+        )
+    ks = backends.weights.kernel_size
+    rows, cols = grid_shape(camera.width, camera.height, ks, config.stride)
+    if rows < 1 or cols < 1:
+        raise PerchError(f"image {camera.width}x{camera.height} is smaller than the {ks}x{ks} feature window")
+    t = time.perf_counter()
+    image = backends.scorer.image_to_device(image_rgb)
+    obs = backends.scorer.observed_features(image)
+    t = lap(backends.device, timings, "photo_features", t)
+    feats = obs.numpy().reshape(rows * cols, -1)
+    rar, labels = rarity_and_labels(feats, config.clusters, config.seed, terms.rarity, terms.inits)
+    offset = background_offset(feats, labels, rar, terms.background)
+    ceiling = (rar - offset).reshape(rows, cols)
+    norms = np.linalg.norm(feats.astype(np.float64), axis=1).reshape(rows, cols).astype(np.float32)
+    with wp.ScopedDevice(backends.device):
+        gain = wp.array(rar.reshape(rows, cols), dtype=float)
+        pw = point_weights(gain, wp.array(offset.reshape(rows, cols), dtype=float))
+        # The thesis's ceiling is the rarity itself: the same array, so its bounds stay bit for bit.
+        ceil = gain if terms.background == 0.0 else wp.array(ceiling, dtype=float)
+        photo = Photo(image, obs, wp.array(norms, dtype=float), pw, ceil, rows, cols)
+    lap(backends.device, timings, "rarity", t)
+    return photo
+
+
+def _as_source(poses) -> PoseSource:
+    if isinstance(poses, PoseSource):
+        return poses
+    x, y, yaw = (np.atleast_1d(np.asarray(a, dtype=np.float64)) for a in poses)
+    return PoseSource.of_arrays(x, y, yaw)
+
+
+@dataclass
+class ScoringService:
+    """Scores and silhouette bounds of candidate poses in one photo (see the module doc)."""
+
+    backends: Backends
+    config: object  # config.EngineConfig
+    terms: ScoreTerms
+    photo: Photo
+    camera: Camera
+    table: Table
+    resting: RestingPose
+    renderer: object  # the renderer this search uses (render.MeshRenderer)
+    timings: dict = dataclasses.field(default_factory=dict)
+    bar: object = None  # a tqdm bar or None
+
+    def quiet(self, timings: dict | None = None) -> ScoringService:
+        """The same service without a progress bar, its stage seconds into `timings` (a new dict by default)."""
+        return dataclasses.replace(self, timings={} if timings is None else timings, bar=None)
+
+    @property
+    def device(self) -> str:
+        return self.backends.device
+
+    def threads(self) -> int:
+        return cpu_threads(self.device, self.config.cpu_threads)
+
+    def budget(self) -> int:
+        """Rays (pixels or feature points) per batch: the config's, else sized to the device."""
+        return self.config.batch_pixels or batch_pixels(self.device)
+
+    def lap(self, stage: str, t0: float, timings: dict | None = None) -> float:
+        return lap(self.device, self.timings if timings is None else timings, stage, t0)
+
+    def score(self, poses, stats: SearchStats | None = None) -> np.ndarray:
+        """Score (N,) float64 of each pose (x_m, y_m, yaw_rad arrays or a PoseSource), set up a chunk at
+        a time; -inf where it shows no feature point (those count as done on the progress bar at once)."""
+        poses, stats, bar = _as_source(poses), stats or SearchStats(), self.bar
+        scores = np.full(poses.n, -np.inf)
+        if bar is not None:
+            bar.total += poses.n
+            bar.refresh()
+        for idx in poses.chunks():
+            c = self.setup(poses, idx)
+            if bar is not None:
+                bar.update(len(idx) - len(c.live))
+            part = np.full(len(idx), -np.inf)
+            self.score_some(c, c.live, part, stats)
+            scores[idx] = part
+        return scores
+
+    def bound(self, poses, stats: SearchStats | None = None) -> np.ndarray:
+        """Silhouette bound (N,) float64 of each pose's score (perch_warp.bound); -inf where it shows no
+        feature point."""
+        poses, stats = _as_source(poses), stats or SearchStats()
+        bounds = np.full(poses.n, -np.inf)
+        for idx in poses.chunks():
+            c = self.setup(poses, idx)
+            part = np.full(len(idx), -np.inf)
+            self.bound_some(c, c.live, part, stats)
+            bounds[idx] = part
+        return bounds
+
+    def candidates(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> Candidates:
+        """Poses, pixel boxes and feature-grid boxes of candidates (x_m, y_m, yaw_rad arrays) and the
+        indices of those that show at least one feature point."""
+        t = time.perf_counter()
+        R, tr = model_to_camera(self.table, self.resting, x, y, yaw)
+        boxes = self.backends.boxes(self.camera, R, tr)  # = project_boxes(camera, hull_m, R, tr), on the device
+        if np.any(boxes[:, 2] < 0):
+            n_bad = int((boxes[:, 2] < 0).sum())
+            raise PerchError(
+                f"{n_bad} of {len(boxes)} candidate poses set up together are behind or within {MIN_DEPTH_M} m "
+                "of the camera: check the table frame and the search ranges"
+            )
+        gboxes = grid_boxes(boxes, self.backends.weights.kernel_size, self.config.stride)
+        live = np.flatnonzero(gboxes[:, 2] * gboxes[:, 3] > 0)
+        self.lap("candidates", t)
+        return Candidates(R, tr, boxes, gboxes, live)
+
+    def setup(self, poses: PoseSource, idx: np.ndarray) -> Candidates:
+        """candidates() of candidates idx of poses (a chunk: the arrays are idx's, in its order)."""
+        return self.candidates(*poses.at(idx))
+
+    def score_some(self, c: Candidates, idx, out: np.ndarray, stats: SearchStats, progress: bool = True) -> None:
+        """out[idx] = the scores of candidates idx of c (render, features, top-α), in batches."""
+        sizes = c.boxes[idx, 2].astype(np.int64) * c.boxes[idx, 3]
+        stats.rays += int(sizes.sum())
+        work = functools.partial(self._score_batch, c)
+        self._batched(work, idx, sizes, out, stats, self.bar if progress else None)
+
+    def bound_some(self, c: Candidates, idx, out: np.ndarray, stats: SearchStats) -> None:
+        """out[idx] = the silhouette bounds of candidates idx of c (perch_warp.bound), in batches."""
+        sizes = c.gboxes[idx, 2].astype(np.int64) * c.gboxes[idx, 3]  # one ray per feature point
+        stats.bound_rays += int(sizes.sum())
+        work = functools.partial(self._bound_batch, c)
+        self._batched(work, idx, sizes, out, stats, None)
+
+    def _score_batch(self, c: Candidates, idx) -> tuple[np.ndarray, dict[str, float]]:
+        """Candidates `idx`: render (kernel #1) -> features x similarity x rarity (kernel #2) ->
+        top-α mean; their scores on the host and the seconds each stage took."""
+        laps: dict[str, float] = {}
+        photo, scorer = self.photo, self.backends.scorer
+        t = time.perf_counter()
+        batch = self.renderer.render(self.camera, c.R[idx], c.tr[idx], c.boxes[idx])
+        t = self.lap("render", t, laps)
+        vals, pt_off = scorer.score_points(photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights)
+        t = self.lap("features_score", t, laps)
+        # The same kernel on every device, so CPU and GPU runs take the same path to a score.
+        batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha, self.terms.shrink)
+        t = self.lap("reduction", t, laps)
+        out = batch_scores.numpy()  # one float per candidate, not every feature point
+        self.lap("transfer", t, laps)
+        return out, laps
+
+    def _bound_batch(self, c: Candidates, idx) -> tuple[np.ndarray, dict[str, float]]:
+        """Candidates `idx`: upper bounds of their scores from their silhouettes, and the seconds taken."""
+        laps: dict[str, float] = {}
+        t = time.perf_counter()
+        cfg = self.config
+        out = silhouette_bounds(
+            self.renderer,
+            self.camera,
+            c.R[idx],
+            c.tr[idx],
+            c.boxes[idx],
+            c.gboxes[idx],
+            self.photo.ceiling,
+            self.backends.weights.kernel_size,
+            cfg.stride,
+            cfg.alpha,
+            self.terms.shrink,
+        )
+        self.lap("bound", t, laps)
+        return out, laps
+
+    def _batched(self, work, idx: np.ndarray, sizes: np.ndarray, out: np.ndarray, stats: SearchStats, bar) -> None:
+        """out[b] = work(b)[0] for batches b of idx (their sizes, in rays, within the device's budget),
+        on a thread pool on the CPU; work's stage seconds are added to the timings."""
+        budget = self.budget()
+        n_rays = int(sizes.sum())
+        threads = self.threads()
+        if threads > 1:
+            # Smaller batches so that every thread has some and those in flight together hold
+            # about one budget's pixels; not below 64 Ki pixels (launch overhead) unless the budget is.
+            budget = max(min(budget, 1 << 16), min(budget // threads, -(-n_rays // (2 * threads))))
+        batches = [idx[lo:hi] for lo, hi in split_by_budget(sizes, budget)]
+        stats.batches += len(batches)
+        threads = min(threads, len(batches))
+        timings = self.timings
+
+        def done(b: np.ndarray, values: np.ndarray, laps: dict[str, float]) -> None:
+            out[b] = values  # by candidate index: the order batches finish in does not matter
+            for stage, sec in laps.items():
+                timings[stage] = timings.get(stage, 0.0) + sec
+            if bar is not None:
+                bar.update(len(b))
+
+        with self.backends.scorer.conv_settings():
+            if threads <= 1:
+                for b in batches:
+                    done(b, *work(b))
+                return
+            _on_pool(work, batches, done, threads, self.device)
+
+
+def _on_pool(work, batches: list, done, threads: int, device: str) -> None:
+    """done(b, *work(b)) for each batch, the work on a pool of `threads`. Each batch's arrays are its
+    own (the renderer and scorer allocate per call and keep no per-call state). A stage's time is then
+    the sum over threads of its per-batch times, i.e. CPU time, which can exceed the wall time."""
+    with _default_device(device), ThreadPoolExecutor(threads, thread_name_prefix="perch-score") as pool:
+        futures = {pool.submit(work, b): b for b in batches}
+        try:
+            for f in as_completed(futures):
+                done(futures[f], *f.result())
+        except BaseException:
+            for f in futures:
+                f.cancel()
+            raise
+
+
+@contextmanager
+def _default_device(device: str):
+    """`device` as Warp's default device while the pool runs. wp.ScopedDevice (used by the renderer and
+    scorer) saves and restores one process-wide default, so threads entering and leaving it at once
+    would hand each other a stale default; with the default already `device` they only rewrite it."""
+    saved = wp.get_device()
+    if saved == wp.get_device(device):
+        yield
+        return
+    wp.set_device(device)
+    try:
+        yield
+    finally:
+        wp.set_device(saved)
+
+
+def split_by_budget(sizes: np.ndarray, budget: int) -> list[tuple[int, int]]:
+    """Consecutive [lo, hi) ranges whose summed sizes stay within budget (a lone oversize item gets its own)."""
+    out = []
+    lo = 0
+    acc = 0
+    for i, s in enumerate(sizes.tolist()):
+        if acc + s > budget and i > lo:
+            out.append((lo, i))
+            lo, acc = i, 0
+        acc += s
+    if lo < len(sizes):
+        out.append((lo, len(sizes)))
+    return out
