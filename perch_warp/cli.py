@@ -369,8 +369,8 @@ def _image_id(args: argparse.Namespace) -> int | None:
 
 
 def run_estimate(args: argparse.Namespace) -> int:
-    from .bop import truth_instance
-    from .camera import camera_from_entry, read_camera_json
+    from .bop import read_camera_json, truth_instance
+    from .camera import camera_from_entry
     from .image import image_header_size, load_rgb, save_png
     from .mesh import load_mesh
     from .outputs import check_output_file

@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from . import bop
 from .camera import Camera
 from .errors import PerchError
 from .mesh import ObjectMesh
@@ -323,7 +324,6 @@ def write_obj(mesh: ObjectMesh, path: Path) -> None:
 def write_scene(sc: DemoScene, folder: Path) -> tuple[np.ndarray, np.ndarray]:
     """The scene as files the CLI reads: rgb/000001.png, models/obj_000001.obj, BOP scene_camera.json
     and scene_gt.json (mm). Returns the true model -> camera pose (R, t in metres)."""
-    from .cli import write_json_atomic
     from .image import save_png
 
     (folder / "models").mkdir(parents=True, exist_ok=True)
@@ -339,8 +339,7 @@ def write_scene(sc: DemoScene, folder: Path) -> tuple[np.ndarray, np.ndarray]:
         "depth_scale": 1.0,
     }
     gt_entry = {"obj_id": 1, "cam_R_m2c": R_gt.reshape(-1).tolist(), "cam_t_m2c": (t_gt * 1000).tolist()}
-    write_json_atomic(folder / "scene_camera.json", {"1": cam_entry})
-    write_json_atomic(folder / "scene_gt.json", {"1": [gt_entry]})
+    bop.write_scene(folder, {1: cam_entry}, {1: [gt_entry]})
     return R_gt, t_gt
 
 

@@ -228,9 +228,9 @@ def independent_adds_m(root, out) -> dict[tuple[int, int, int], float]:
 
 def test_image_labels_are_string_values_of_known_keys():
     entry = {"cam_K": K, "lighting": "harsh", "occlusion": 3, "weather": "rain"}
-    assert ev.image_labels(entry) == {"lighting": "harsh"}
-    assert ev.image_labels({"cam_K": K}) == {}
-    assert ev.IMAGE_LABEL_KEYS == ("lighting", "occlusion")
+    assert bop.image_labels(entry) == {"lighting": "harsh"}
+    assert bop.image_labels({"cam_K": K}) == {}
+    assert bop.IMAGE_LABEL_KEYS == ("lighting", "occlusion")
 
 
 def test_metrics_by_image_label_agree_with_an_independent_computation(tmp_path):
