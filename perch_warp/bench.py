@@ -2,7 +2,7 @@
 
 Reference workload (fixed, so figures from different commits and devices compare):
 the real YCB-Video frame ycbv test scene 2 image 1, the potted meat can (obj 9), the
-visible table clipped to 1 m x 1 m (evaluate.py's region code: nothing derived from
+visible table clipped to 1 m x 1 m (`perch_warp eval`'s region: nothing derived from
 the ground truth), x/y step 1 cm, yaw step 0.1 rad over the full circle; height,
 roll and pitch from the ground truth as in `perch_warp eval`. `--warmup` untimed runs
 (default one, reported apart), then `--repeat` timed runs.

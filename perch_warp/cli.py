@@ -19,7 +19,7 @@ from .errors import PerchError
 # name -> module exposing add_arguments(parser) and run(args) -> int
 SUBCOMMANDS = {
     "demo": ("perch_warp.demo", "run the whole pipeline on a scene the project makes itself (offline)"),
-    "eval": ("perch_warp.evaluate", "evaluate on a BOP-format dataset (ADD-S, AUC, plots)"),
+    "eval": ("perch_warp.eval.command", "evaluate on a BOP-format dataset (ADD-S, AUC, plots)"),
     "synth": ("perch_warp.synth", "generate photorealistic synthetic BOP test scenes"),
     "bench": ("perch_warp.bench", "time the reference workload, a ray-casting microbenchmark and its Open3D peer"),
 }

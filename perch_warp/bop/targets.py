@@ -115,24 +115,10 @@ def select_targets(
             for k, g in enumerate(gts[im_id]):
                 if wanted is not None and g.obj_id not in wanted:
                     continue
-                if g.obj_id not in model_paths:
-                    p = ds.model_path(g.obj_id)
-                    if p is None:
-                        if g.obj_id in ds.models_info:
-                            raise PerchError(
-                                f"{ds.models_dir / 'models_info.json'} lists object {g.obj_id} but its mesh "
-                                f"{ds.models_dir / f'obj_{g.obj_id:06d}.obj'} (or .ply) is missing"
-                            )
-                        skipped[g.obj_id] += 1
-                        continue
-                    model_paths[g.obj_id] = p
-                vf = None
-                if infos is not None:
-                    lst = infos.get(im_id)
-                    if lst is None or len(lst) != len(gts[im_id]):
-                        raise PerchError(f"{info_file}: image {im_id} must list one entry per instance of {gt_file}")
-                    if "visib_fract" in lst[k]:
-                        vf = float(lst[k]["visib_fract"])
+                if not _has_mesh(ds, g.obj_id, model_paths):
+                    skipped[g.obj_id] += 1
+                    continue
+                vf = _visib_fract(infos, im_id, k, len(gts[im_id]), info_file, gt_file)
                 targets.append(
                     Target(scene_id, im_id, k, g.obj_id, g.R_m2c, g.t_m2c_m, vf, dict(labels), g.projected, g.problem)
                 )
@@ -148,6 +134,33 @@ def select_targets(
             table_source_for(entry, sdir, im_id, cam_file, table_source)  # fail before any search
             images.append(ImageInfo(scene_id, im_id, rgb, camera, entry, cam_file, targets))
     return Selection(images, skipped, model_paths)
+
+
+def _has_mesh(ds: Dataset, obj_id: int, model_paths: dict[int, Path]) -> bool:
+    """Whether the object has a mesh (recorded in model_paths); a mesh missing for an object that
+    models_info.json lists is an error naming the file."""
+    if obj_id in model_paths:
+        return True
+    p = ds.model_path(obj_id)
+    if p is None:
+        if obj_id in ds.models_info:
+            raise PerchError(
+                f"{ds.models_dir / 'models_info.json'} lists object {obj_id} but its mesh "
+                f"{ds.models_dir / f'obj_{obj_id:06d}.obj'} (or .ply) is missing"
+            )
+        return False
+    model_paths[obj_id] = p
+    return True
+
+
+def _visib_fract(infos: dict | None, im_id: int, k: int, n: int, info_file: Path, gt_file: Path) -> float | None:
+    """Instance k's visib_fract from scene_gt_info.json (None without the file or the key)."""
+    if infos is None:
+        return None
+    lst = infos.get(im_id)
+    if lst is None or len(lst) != n:
+        raise PerchError(f"{info_file}: image {im_id} must list one entry per instance of {gt_file}")
+    return float(lst[k]["visib_fract"]) if "visib_fract" in lst[k] else None
 
 
 @dataclass
