@@ -22,6 +22,8 @@ from . import bop
 from .camera import Camera
 from .errors import PerchError
 from .mesh import ObjectMesh
+from .options import add_method_arguments, build_engine
+from .report import conv_line, log, renderer_line, search_summary, timing_line, write_json_atomic
 from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera
 
@@ -344,8 +346,6 @@ def write_scene(sc: DemoScene, folder: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from .cli import add_method_arguments
-
     p.add_argument("--out", default="perch_warp_demo", help="output folder (default: ./perch_warp_demo)")
     p.add_argument("--scene-seed", type=int, default=0, help="which random scene (default: 0)")
     p.add_argument("--yaw-step", type=float, default=15.0, help="yaw step in degrees (default: 15)")
@@ -353,7 +353,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .cli import build_engine, conv_line, log, renderer_line, search_summary, timing_line, write_json_atomic
     from .image import save_png
     from .overlay import TRUTH_COLOR, caption, mask_contour, overlay_rendering
     from .pose_error import adi

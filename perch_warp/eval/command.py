@@ -9,6 +9,7 @@ from pathlib import Path
 
 from ..camera import Camera
 from ..errors import PerchError
+from ..options import add_method_arguments, add_search_arguments, engine_config_from_args, search_space_from_args
 from ..outputs import check_output_dir
 from ..table import RestingPose, Table
 from .journal import NOT_SEARCH_OPTIONS, RESULTS_FILE
@@ -35,8 +36,6 @@ def _ids(values: list[str] | None, flag: str) -> list[int] | None:
 
 def add_arguments(parser: argparse.ArgumentParser) -> None:
     """Options of `python -m perch_warp eval` (method and search options are the CLI's shared ones)."""
-    from ..cli import add_method_arguments, add_search_arguments
-
     d = parser.add_argument_group("dataset")
     d.add_argument("--dataset", required=True, type=Path, help="BOP dataset folder (models/, SPLIT/SCENE/...)")
     d.add_argument("--split", default="test", help="split folder (default: test)")
@@ -63,8 +62,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
 
 def run(args: argparse.Namespace) -> int:
     """Entry point of `python -m perch_warp eval`; PerchError propagates to the CLI."""
-
-    from ..cli import engine_config_from_args, search_space_from_args
 
     check_output_dir(args.out, "--out")  # before anything is read or searched
     objects = _ids(args.objects, "--objects")

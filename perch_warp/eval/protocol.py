@@ -20,6 +20,7 @@ from ..camera import Camera
 from ..errors import PerchError
 from ..image import load_rgb
 from ..mesh import load_mesh
+from ..options import SearchTooLarge
 from ..outputs import atomic_write_text, check_output_dir, folder_lock
 from ..search_space import SearchSpace
 from ..table import RestingPose, Table, decompose_on_table
@@ -286,8 +287,6 @@ def _write_outputs(out_dir, ds, selection, done, failed, tables, max_points, run
 
 def _stops_the_run(e: Exception) -> bool:
     """Errors that are not one target's: a search-size guard (the same options for every target)."""
-    from ..cli import SearchTooLarge
-
     return isinstance(e, SearchTooLarge)
 
 
