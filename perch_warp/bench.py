@@ -2,7 +2,7 @@
 
 Reference workload (fixed, so figures from different commits and devices compare):
 the real YCB-Video frame ycbv test scene 2 image 1, the potted meat can (obj 9), the
-visible table clipped to 1 m x 1 m (evaluate.py's region code: nothing derived from
+visible table clipped to 1 m x 1 m (`perch_warp eval`'s region: nothing derived from
 the ground truth), x/y step 1 cm, yaw step 0.1 rad over the full circle; height,
 roll and pitch from the ground truth as in `perch_warp eval`. `--warmup` untimed runs
 (default one, reported apart), then `--repeat` timed runs.
@@ -34,13 +34,15 @@ from pathlib import Path
 
 import numpy as np
 
+from . import bop, pose_error
 from .camera import Camera
 from .errors import PerchError
+from .image import load_rgb
 from .kernels.raycast_bench import MISS  # the hit parameter written where a ray meets nothing
-from .mesh import ObjectMesh
+from .mesh import ObjectMesh, load_mesh
 from .render import camera_in_model, pixel_rays  # the rays of kernel #1
 from .search_space import SearchSpace
-from .table import RestingPose, Table
+from .table import RestingPose, Table, decompose_on_table
 
 STAGES = (
     "photo_features",
@@ -99,26 +101,20 @@ def load_workload(
     split: str = "test",
 ) -> Workload:
     """The frame, its table, the object's first instance and the visible-table region, as `perch_warp eval` has them."""
-    from . import bop, evaluate, pose_error
-    from .mesh import load_mesh
-    from .table import decompose_on_table
-
     for name, v, unit in (("--clip", clip_m, "m"), ("--xy-step", xy_step_m, "m"), ("--yaw-step", yaw_step_rad, "rad")):
         if not (math.isfinite(v) and v > 0):
             raise PerchError(f"{name} must be a positive number of {unit}, got {v}")
     ds = bop.open_dataset(dataset, split)
-    selection = evaluate.select_targets(ds, scenes=[scene_id], objects=[obj_id])
+    selection = bop.select_targets(ds, scenes=[scene_id], objects=[obj_id])
     im = next((i for i in selection.images if i.im_id == im_id), None)
     if im is None:
         raise PerchError(f"object {obj_id} is not in scene {scene_id} image {im_id} of {ds.split_dir}")
     target = im.targets[0]  # the first instance, as listed in scene_gt.json
-    table, how = evaluate.TableCache(how="auto").get(im)
+    table, how = bop.TableCache(how="auto").get(im)
     resting, gx, gy, gyaw = decompose_on_table(table, target.R_gt, target.t_gt_m)
-    space_fn = evaluate.visible_table_space(xy_step_m=xy_step_m, yaw_step_rad=yaw_step_rad, clip_m=clip_m)
-    space = space_fn(im.camera, table, resting)
+    # The default region of `perch_warp eval`: the visible table, clipped (never the ground truth).
+    space = SearchSpace.visible_table(im.camera, table, xy_step_m=xy_step_m, yaw_step_rad=yaw_step_rad, clip_m=clip_m)
     len(space)  # validates the ranges
-    from .image import load_rgb
-
     mesh = load_mesh(selection.model_paths[obj_id])
     return Workload(
         label=f"{ds.root.name} {split} scene {scene_id} image {im_id}, {ds.object_name(obj_id)} (obj {obj_id})",

@@ -2,9 +2,7 @@
 
 from __future__ import annotations
 
-import json
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 
@@ -73,37 +71,7 @@ class Camera:
         return Camera(K, round(self.width * factor), round(self.height * factor))
 
 
-def read_camera_json(path: str | Path, image_id: int | None = None) -> dict:
-    """One camera entry from a BOP `scene_camera.json` (or a flat dict with `cam_K`).
-
-    BOP files map image ids to entries; `image_id` picks one, and may be omitted when
-    the file holds exactly one entry.
-    """
-    path = Path(path)
-    try:
-        data = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise PerchError(f"camera file not found: {path}") from None
-    except (OSError, ValueError) as e:
-        raise PerchError(f"cannot read camera file {path}: {e}") from None
-    if not isinstance(data, dict):
-        raise PerchError(f"camera file {path} must hold a JSON object")
-    if "cam_K" in data:
-        return data
-    if image_id is not None:
-        entry = data.get(str(image_id))
-        if entry is None:
-            raise PerchError(f"camera file {path} has no entry for image id {image_id} (has {sorted(data)[:10]})")
-    elif len(data) == 1:
-        entry = next(iter(data.values()))
-    else:
-        raise PerchError(f"camera file {path} has {len(data)} entries; say which with --image-id")
-    if not isinstance(entry, dict) or "cam_K" not in entry:
-        raise PerchError(f"camera entry in {path} has no 'cam_K'")
-    return entry
-
-
-def _entry_size(entry: dict, key: str, source: str) -> int | None:
+def entry_size(entry: dict, key: str, source: str) -> int | None:
     """The entry's optional `width`/`height`: a positive integer, or PerchError naming the value."""
     if key not in entry:
         return None
@@ -127,7 +95,7 @@ def camera_from_entry(entry: dict, width: int, height: int, source: str = "camer
         raise PerchError(f"{source}: 'cam_K' must be 9 numbers, got {entry.get('cam_K')!r}") from None
     what = f"image {image}" if image else "the image"
     for key, actual in (("width", width), ("height", height)):
-        said = _entry_size(entry, key, source)
+        said = entry_size(entry, key, source)
         if said is not None and said != actual:
             raise PerchError(f"{source}: {what} has {key} {actual} but the camera says {said}")
     try:

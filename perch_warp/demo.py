@@ -18,9 +18,12 @@ from pathlib import Path
 
 import numpy as np
 
+from . import bop
 from .camera import Camera
 from .errors import PerchError
 from .mesh import ObjectMesh
+from .options import add_method_arguments, build_engine
+from .report import conv_line, log, renderer_line, search_summary, timing_line, write_json_atomic
 from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera
 
@@ -323,7 +326,6 @@ def write_obj(mesh: ObjectMesh, path: Path) -> None:
 def write_scene(sc: DemoScene, folder: Path) -> tuple[np.ndarray, np.ndarray]:
     """The scene as files the CLI reads: rgb/000001.png, models/obj_000001.obj, BOP scene_camera.json
     and scene_gt.json (mm). Returns the true model -> camera pose (R, t in metres)."""
-    from .cli import write_json_atomic
     from .image import save_png
 
     (folder / "models").mkdir(parents=True, exist_ok=True)
@@ -339,14 +341,11 @@ def write_scene(sc: DemoScene, folder: Path) -> tuple[np.ndarray, np.ndarray]:
         "depth_scale": 1.0,
     }
     gt_entry = {"obj_id": 1, "cam_R_m2c": R_gt.reshape(-1).tolist(), "cam_t_m2c": (t_gt * 1000).tolist()}
-    write_json_atomic(folder / "scene_camera.json", {"1": cam_entry})
-    write_json_atomic(folder / "scene_gt.json", {"1": [gt_entry]})
+    bop.write_scene(folder, {1: cam_entry}, {1: [gt_entry]})
     return R_gt, t_gt
 
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
-    from .cli import add_method_arguments
-
     p.add_argument("--out", default="perch_warp_demo", help="output folder (default: ./perch_warp_demo)")
     p.add_argument("--scene-seed", type=int, default=0, help="which random scene (default: 0)")
     p.add_argument("--yaw-step", type=float, default=15.0, help="yaw step in degrees (default: 15)")
@@ -354,7 +353,6 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
 
 
 def run(args: argparse.Namespace) -> int:
-    from .cli import build_engine, conv_line, log, renderer_line, search_summary, timing_line, write_json_atomic
     from .image import save_png
     from .overlay import TRUTH_COLOR, caption, mask_contour, overlay_rendering
     from .pose_error import adi

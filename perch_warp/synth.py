@@ -43,7 +43,6 @@ seeded with ``(seed, i)``, so results do not depend on the number of worker proc
 from __future__ import annotations
 
 import argparse
-import json
 import math
 import os
 import shutil
@@ -55,6 +54,7 @@ from typing import Any
 
 import numpy as np
 
+from . import bop
 from .errors import PerchError
 
 DEFAULT_TARGETS = (3, 4, 8, 9)
@@ -849,8 +849,8 @@ def write_preview(root: str | Path, path: str | Path | None = None, n: int = 8, 
 
     root = Path(root)
     scene = root / "test" / f"{SCENE_ID:06d}"
-    cams = json.loads((scene / "scene_camera.json").read_text())
-    gts = json.loads((scene / "scene_gt.json").read_text())
+    cams = bop.read_json(scene / "scene_camera.json", "scene_camera.json")
+    gts = bop.read_json(scene / "scene_gt.json", "scene_gt.json")
     tiles = []
     for im_id in sorted(cams, key=int)[:n]:
         im = Image.open(scene / "rgb" / f"{int(im_id):06d}.png").convert("RGB")
@@ -871,10 +871,6 @@ def write_preview(root: str | Path, path: str | Path | None = None, n: int = 8, 
     out = Path(path) if path is not None else root / "preview.png"
     sheet.save(out)
     return out
-
-
-def _write_json(path: Path, obj: Any) -> None:
-    path.write_text(json.dumps(obj, indent=1) + "\n")
 
 
 def generate(
@@ -975,14 +971,17 @@ def generate(
         jobs = [(i, str(scene_dir)) for i in range(n_images)]
         results = _run_jobs(cfg, jobs, n_workers, progress)
         results.sort(key=lambda r: r["im_id"])
-        _write_json(scene_dir / "scene_camera.json", {str(r["im_id"]): r["camera"] for r in results})
-        _write_json(scene_dir / "scene_gt.json", {str(r["im_id"]): r["gt"] for r in results})
-        _write_json(scene_dir / "scene_gt_info.json", {str(r["im_id"]): r["info"] for r in results})
-        _write_json(
+        bop.write_scene(
+            scene_dir,
+            {r["im_id"]: r["camera"] for r in results},
+            {r["im_id"]: r["gt"] for r in results},
+            {r["im_id"]: r["info"] for r in results},
+        )
+        bop.write_json(
             tmp / "camera.json",
             {"cx": cx, "cy": cy, "fx": f, "fy": f, "width": width, "height": height, "depth_scale": DEPTH_SCALE},
         )
-        _write_json(
+        bop.write_json(
             tmp / "test_targets_bop19.json",
             [
                 {"im_id": r["im_id"], "inst_count": 1, "obj_id": g["obj_id"], "scene_id": SCENE_ID}
@@ -1016,7 +1015,7 @@ def generate(
             "units": "mm",
             "labels": "scene_camera.json entries carry 'lighting' (normal|harsh) and 'occlusion' (low|high)",
         }
-        _write_json(tmp / "dataset_info.json", info)
+        bop.write_json(tmp / "dataset_info.json", info)
         write_preview(tmp)
         if out_dir.exists():
             old = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.old-", dir=out_dir.parent))

@@ -21,9 +21,9 @@ from PIL import Image
 from test_bop import write_tiny_dataset
 from test_evaluate import FakeEstimator
 
-from perch_warp import evaluate as ev
 from perch_warp.cli import main
 from perch_warp.demo import demo_scene, write_scene
+from perch_warp.eval import command
 
 TINY = ["--device", "cpu", "--yaw-step", "30", "--no-refine", "--quiet"]
 
@@ -123,33 +123,52 @@ BAD_ESTIMATE: list[tuple[str, Callable[[Path, Path], dict], str]] = [
     ("--out is a folder", lambda s, t: {"out": t / "outdir", "mkdir": t / "outdir"}, "is a folder: give a file"),
     ("--overlay under a file", lambda s, t: {"overlay": t / "f" / "o.png", "touch": t / "f"}, "which is a file"),
     # 7. --truth through the one validated BOP reader
-    ("truth top-level list", lambda s, t: {"truth": _edit_json(s / "scene_gt.json", t / "gt.json", lambda d: [d])},
-     "must hold a JSON object keyed by integer ids"),  # fmt: skip
-    ("truth no cam_R_m2c", lambda s, t: {"truth": _edit_json(s / "scene_gt.json", t / "gt.json",
-                                                              lambda d: d["1"][0].pop("cam_R_m2c") and None)},
-     "needs obj_id, cam_R_m2c and cam_t_m2c"),  # fmt: skip
-    ("truth obj_id nine", lambda s, t: {"truth": _edit_json(s / "scene_gt.json", t / "gt.json",
-                                                             _gt_edit("obj_id", "nine"))},
-     "obj_id 'nine' is not an integer"),  # fmt: skip
-    ("truth 2-number t", lambda s, t: {"truth": _edit_json(s / "scene_gt.json", t / "gt.json",
-                                                            _gt_edit("cam_t_m2c", [1.0, 2.0]))},
-     "cam_t_m2c (mm) must be 3 finite numbers"),  # fmt: skip
+    (
+        "truth top-level list",
+        lambda s, t: {"truth": _edit_json(s / "scene_gt.json", t / "gt.json", lambda d: [d])},
+        "must hold a JSON object keyed by integer ids",
+    ),  # fmt: skip
+    (
+        "truth no cam_R_m2c",
+        lambda s, t: {
+            "truth": _edit_json(s / "scene_gt.json", t / "gt.json", lambda d: d["1"][0].pop("cam_R_m2c") and None)
+        },
+        "needs obj_id, cam_R_m2c and cam_t_m2c",
+    ),  # fmt: skip
+    (
+        "truth obj_id nine",
+        lambda s, t: {"truth": _edit_json(s / "scene_gt.json", t / "gt.json", _gt_edit("obj_id", "nine"))},
+        "obj_id 'nine' is not an integer",
+    ),  # fmt: skip
+    (
+        "truth 2-number t",
+        lambda s, t: {"truth": _edit_json(s / "scene_gt.json", t / "gt.json", _gt_edit("cam_t_m2c", [1.0, 2.0]))},
+        "cam_t_m2c (mm) must be 3 finite numbers",
+    ),  # fmt: skip
     # 8. a rotation beyond the SO(3) projection's tolerance
-    ("truth not a rotation", lambda s, t: {"truth": _edit_json(s / "scene_gt.json", t / "gt.json",
-                                                                _rotation_scaled(1.1))},
-     "cam_R_m2c is not a rotation (max |R R^T - I| = 0.21 > 0.02)"),  # fmt: skip
+    (
+        "truth not a rotation",
+        lambda s, t: {"truth": _edit_json(s / "scene_gt.json", t / "gt.json", _rotation_scaled(1.1))},
+        "cam_R_m2c is not a rotation (max |R R^T - I| = 0.21 > 0.02)",
+    ),  # fmt: skip
     ("obj-id without truth", lambda s, t: {"extra": ["--obj-id", "1"], "truth": None}, "--obj-id needs --truth"),
     # 10. camera width/height that are not numbers
-    ("camera width abc", lambda s, t: {"camera": _edit_json(s / "scene_camera.json", t / "c.json",
-                                                            _cam_edit("width", "abc"))},
-     "'width' must be a positive whole number of pixels, got 'abc'"),  # fmt: skip
-    ("camera height null", lambda s, t: {"camera": _edit_json(s / "scene_camera.json", t / "c.json",
-                                                              _cam_edit("height", None))},
-     "'height' must be a positive whole number of pixels, got None"),  # fmt: skip
+    (
+        "camera width abc",
+        lambda s, t: {"camera": _edit_json(s / "scene_camera.json", t / "c.json", _cam_edit("width", "abc"))},
+        "'width' must be a positive whole number of pixels, got 'abc'",
+    ),  # fmt: skip
+    (
+        "camera height null",
+        lambda s, t: {"camera": _edit_json(s / "scene_camera.json", t / "c.json", _cam_edit("height", None))},
+        "'height' must be a positive whole number of pixels, got None",
+    ),  # fmt: skip
     # 9. messages that name the real culprit
-    ("no table frame", lambda s, t: {"camera": _edit_json(s / "scene_camera.json", t / "c.json",
-                                                          _cam_edit("cam_R_w2c", KeyError))},
-     "add them to the camera file (or, for a BOP dataset"),  # fmt: skip (not the nonexistent --table)
+    (
+        "no table frame",
+        lambda s, t: {"camera": _edit_json(s / "scene_camera.json", t / "c.json", _cam_edit("cam_R_w2c", KeyError))},
+        "add them to the camera file (or, for a BOP dataset",
+    ),  # fmt: skip (not the nonexistent --table)
     ("mesh units wrong", lambda s, t: {"extra": ["--mesh-units", "mm"]}, "read as mm (given)"),
 ]
 
@@ -236,7 +255,7 @@ def test_ok_estimate_beside_the_bad_cases(scene, tmp_path, capsys):
 def tiny(tmp_path, monkeypatch):
     root = write_tiny_dataset(tmp_path / "ds")
     est = FakeEstimator()
-    monkeypatch.setattr(ev, "EngineEstimator", lambda *a, **k: est)
+    monkeypatch.setattr(command, "EngineEstimator", lambda *a, **k: est)
     return root, est
 
 

@@ -209,21 +209,17 @@ def test_tiny_dataset_reads(tmp_path):
 
 
 def test_missing_scene_gt_names_the_file(tmp_path):
-    from perch_warp.evaluate import select_targets
-
     root = write_tiny_dataset(tmp_path / "ds")
     (root / "test" / "000001" / "scene_gt.json").unlink()
     with pytest.raises(PerchError, match=r"scene_gt\.json not found: .*000001/scene_gt\.json"):
-        select_targets(bop.open_dataset(root))
+        bop.select_targets(bop.open_dataset(root))
 
 
 def test_malformed_json_names_the_file(tmp_path):
-    from perch_warp.evaluate import select_targets
-
     root = write_tiny_dataset(tmp_path / "ds")
     (root / "test" / "000001" / "scene_camera.json").write_text('{"1": {"cam_K": [1, 2,')
     with pytest.raises(PerchError, match=r"malformed JSON in .*scene_camera\.json"):
-        select_targets(bop.open_dataset(root))
+        bop.select_targets(bop.open_dataset(root))
 
 
 def test_bad_pose_values_name_the_file_and_instance(tmp_path):
@@ -237,47 +233,39 @@ def test_bad_pose_values_name_the_file_and_instance(tmp_path):
 
 
 def test_image_size_mismatch_names_the_image(tmp_path):
-    from perch_warp.evaluate import select_targets
-
     root = write_tiny_dataset(tmp_path / "ds")
     img = root / "test" / "000001" / "rgb" / "000002.png"
     Image.fromarray(np.zeros((96, 128, 3), dtype=np.uint8)).save(img)  # twice the calibrated size
     with pytest.raises(PerchError, match=r"rgb/000002\.png is 128x96"):
-        select_targets(bop.open_dataset(root))
+        bop.select_targets(bop.open_dataset(root))
     Image.fromarray(np.zeros((24, 32, 3), dtype=np.uint8)).save(img)  # half: principal point outside
     with pytest.raises(PerchError, match=r"000002\.png"):
-        select_targets(bop.open_dataset(root))
+        bop.select_targets(bop.open_dataset(root))
 
 
 def test_root_camera_json_size_is_checked(tmp_path):
-    from perch_warp.evaluate import select_targets
-
     root = write_tiny_dataset(tmp_path / "ds")
     (root / "camera.json").write_text(json.dumps({"width": 640, "height": 480}))
     with pytest.raises(PerchError, match=r"64x48 but .*camera\.json says 640x480"):
-        select_targets(bop.open_dataset(root))
+        bop.select_targets(bop.open_dataset(root))
 
 
 def test_model_listed_without_mesh_is_an_error(tmp_path):
-    from perch_warp.evaluate import select_targets
-
     root = write_tiny_dataset(tmp_path / "ds")
     (root / "models" / "obj_000002.ply").unlink()
     with pytest.raises(PerchError, match=r"models_info\.json lists object 2 but its mesh .*obj_000002"):
-        select_targets(bop.open_dataset(root))
+        bop.select_targets(bop.open_dataset(root))
     with pytest.raises(PerchError, match=r"no mesh for object 7: expected .*obj_000007\.obj"):
-        select_targets(bop.open_dataset(root), objects=[1, 7])
+        bop.select_targets(bop.open_dataset(root), objects=[1, 7])
 
 
 def test_no_table_frame_and_no_depth_is_a_clear_error(tmp_path):
-    from perch_warp.evaluate import select_targets
-
     root = write_tiny_dataset(tmp_path / "ds", with_w2c=False, with_depth=False)
     with pytest.raises(PerchError, match=r"no table frame .*cam_R_w2c.*depth image"):
-        select_targets(bop.open_dataset(root))
+        bop.select_targets(bop.open_dataset(root))
     # With depth it falls back to a plane fit that finds the table used to make the dataset.
     root = write_tiny_dataset(tmp_path / "ds2", with_w2c=False, with_depth=True)
-    sel = select_targets(bop.open_dataset(root))
+    sel = bop.select_targets(bop.open_dataset(root))
     im = sel.images[0]
     table, how = bop.table_for_image(im.entry, im.rgb.parent.parent, im.im_id, im.camera, im.camera_file)
     assert how == "depth RANSAC"

@@ -3,7 +3,8 @@ import json
 import numpy as np
 import pytest
 
-from perch_warp.camera import Camera, camera_from_entry, read_camera_json
+from perch_warp.bop import read_camera_json
+from perch_warp.camera import Camera, camera_from_entry
 from perch_warp.errors import PerchError
 
 K = [500.0, 0.0, 320.0, 0.0, 500.0, 240.0, 0.0, 0.0, 1.0]

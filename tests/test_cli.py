@@ -146,7 +146,7 @@ def test_bad_inputs_give_one_line_errors(scene_dir, random_weights, tmp_path, ca
 def test_timing_line_says_when_stage_times_are_summed_over_threads():
     from types import SimpleNamespace
 
-    from perch_warp.cli import timing_line
+    from perch_warp.report import timing_line
 
     one = SimpleNamespace(timings_s={"render": 3.0, "total": 3.5}, info={"threads": 1})
     two = SimpleNamespace(timings_s={"render": 3.0, "total": 1.75}, info={"threads": 2})
@@ -180,7 +180,7 @@ def test_option_lists_written_out_for_help_match_the_engine():
     import); they must say what the engine accepts and does."""
     import argparse
 
-    from perch_warp import bench, cli
+    from perch_warp import bench, options
     from perch_warp.engine import SEARCHES
     from perch_warp.render import RASTER_FACES_PER_PIXEL, RENDERERS
     from perch_warp.score import CONVS
@@ -190,9 +190,9 @@ def test_option_lists_written_out_for_help_match_the_engine():
         add(p)
         return {a.dest: a for a in p._actions}
 
-    for add, searches in ((cli.add_method_arguments, SEARCHES), (bench.add_arguments, SEARCHES[1:])):
+    for add, searches in ((options.add_method_arguments, SEARCHES), (bench.add_arguments, SEARCHES[1:])):
         a = actions(add)
         assert tuple(a["search"].choices) == tuple(searches)
         assert tuple(a["renderer"].choices) == tuple(RENDERERS)
         assert tuple(a["conv"].choices) == tuple(CONVS)
-    assert f"over {RASTER_FACES_PER_PIXEL:g} faces per pixel" in actions(cli.add_method_arguments)["renderer"].help
+    assert f"over {RASTER_FACES_PER_PIXEL:g} faces per pixel" in actions(options.add_method_arguments)["renderer"].help

@@ -12,8 +12,8 @@ import pytest
 from test_bop import K, write_tiny_dataset
 
 from perch_warp import bop
-from perch_warp import evaluate as ev
 from perch_warp.errors import PerchError
+from perch_warp.eval import command, protocol
 from perch_warp.mesh import load_mesh
 from perch_warp.table import decompose_on_table, model_to_camera
 
@@ -40,13 +40,13 @@ class FakeEstimator:
         _, x, y, yaw = decompose_on_table(table, target.R_gt, target.t_gt_m)
         dx, dyaw = OFFSETS[target.key]
         R, t = model_to_camera(table, resting, x + dx, y, yaw + dyaw)
-        return ev.Estimate(R, t, 1.0 - dx, {"fake": True})
+        return protocol.Estimate(R, t, 1.0 - dx, {"fake": True})
 
 
 def run_eval(root, out, est, **kw):
     kw.setdefault("plots", False)
-    return ev.evaluate(
-        root, out, make_estimator=lambda paths: est, space_fn=ev.visible_table_space(0.02), progress=False, **kw
+    return protocol.evaluate(
+        root, out, make_estimator=lambda paths: est, space_fn=protocol.visible_table_space(0.02), progress=False, **kw
     )
 
 
@@ -177,13 +177,13 @@ def test_no_occlusion_plot_without_scene_gt_info(tmp_path):
 def test_command_line_wiring(tmp_path, monkeypatch, capsys):
     root = write_tiny_dataset(tmp_path / "ds")
     est = FakeEstimator()
-    monkeypatch.setattr(ev, "EngineEstimator", lambda *a, **k: est)
+    monkeypatch.setattr(command, "EngineEstimator", lambda *a, **k: est)
     p = argparse.ArgumentParser()
-    ev.add_arguments(p)
+    command.add_arguments(p)
     args = p.parse_args(
         ["--dataset", str(root), "--out", str(tmp_path / "out"), "--objects", "1,2", "--no-plots", "--xy-step", "0.02"]
     )
-    assert ev.run(args) == 0
+    assert command.run(args) == 0
     out = capsys.readouterr().out
     assert "001 box" in out and "All Objects (mean)" in out and "Mean Runtime" in out
     assert len(est.calls) == 5
@@ -228,9 +228,9 @@ def independent_adds_m(root, out) -> dict[tuple[int, int, int], float]:
 
 def test_image_labels_are_string_values_of_known_keys():
     entry = {"cam_K": K, "lighting": "harsh", "occlusion": 3, "weather": "rain"}
-    assert ev.image_labels(entry) == {"lighting": "harsh"}
-    assert ev.image_labels({"cam_K": K}) == {}
-    assert ev.IMAGE_LABEL_KEYS == ("lighting", "occlusion")
+    assert bop.image_labels(entry) == {"lighting": "harsh"}
+    assert bop.image_labels({"cam_K": K}) == {}
+    assert bop.IMAGE_LABEL_KEYS == ("lighting", "occlusion")
 
 
 def test_metrics_by_image_label_agree_with_an_independent_computation(tmp_path):

@@ -10,12 +10,12 @@ from _device import DEVICE
 
 from perch_warp import render
 from perch_warp.camera import Camera
-from perch_warp.cli import renderer_line
 from perch_warp.demo import label_texture, look_at_table, striped_cylinder, textured_box
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
 from perch_warp.mesh import ObjectMesh
 from perch_warp.render import MeshRenderer, auto_renderer, is_closed_surface, project_boxes
+from perch_warp.report import renderer_line
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import RestingPose, model_to_camera
 

@@ -30,10 +30,10 @@ import sys
 import time
 from pathlib import Path
 
-from perch_warp import evaluate
 from perch_warp.bench import Workload, add_frame_arguments, default_dataset, device_name, git_commit, load_workload
 from perch_warp.engine import Engine, EngineConfig, default_device
 from perch_warp.errors import PerchError
+from perch_warp.eval import protocol
 from perch_warp.features import load_feature_weights
 
 PER_CANDIDATE_STAGES = ("candidates", "render", "features_score", "transfer", "reduction")
@@ -142,7 +142,7 @@ def main(argv: list[str] | None = None) -> int:
         points = plan(args)
         w0 = load_workload(dataset, args.scene, args.image, args.obj, args.base_clip, args.base_xy, args.yaw_step)
         for p in points:
-            space_fn = evaluate.visible_table_space(p["xy_step_m"], args.yaw_step, p["clip_m"])
+            space_fn = protocol.visible_table_space(p["xy_step_m"], args.yaw_step, p["clip_m"])
             p["workload"] = dataclasses.replace(w0, space=space_fn(w0.camera, w0.table, w0.resting))
             len(p["workload"].space)  # validates every point before any search
         weights = load_feature_weights(args.weights)

@@ -35,7 +35,6 @@ import numpy as np
 from perch_warp import bop, pose_error
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
-from perch_warp.evaluate import TableCache, select_targets
 from perch_warp.features import load_feature_weights
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
@@ -45,9 +44,9 @@ from perch_warp.table import decompose_on_table, model_to_camera
 
 def collect(args: argparse.Namespace) -> None:
     ds = bop.open_dataset(args.dataset, "test", args.models)
-    sel = select_targets(ds, args.scenes, args.objects, args.max_images)
+    sel = bop.select_targets(ds, args.scenes, args.objects, args.max_images)
     weights = load_feature_weights(args.weights)
-    tables = TableCache("auto")
+    tables = bop.TableCache("auto")
     engines: dict[int, Engine] = {}
     cfg = EngineConfig(search="pruned", refine=False, top_k=args.pool, score="thesis", image_scale=args.image_scale)
     rows = []
@@ -154,9 +153,9 @@ def rescore(args: argparse.Namespace) -> None:
     ds = bop.open_dataset(meta["dataset"], "test", meta["models"])
     weights = load_feature_weights(meta["weights"])
     scenes = sorted({t["key"][0] for t in meta["targets"]})
-    sel = select_targets(ds, scenes)
+    sel = bop.select_targets(ds, scenes)
     by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
-    tables = TableCache("auto")
+    tables = bop.TableCache("auto")
     targets = [t for t in meta["targets"] if tuple(t["key"]) in by_key][: args.limit]
     results: dict[str, list[dict]] = {}
     meshes: dict[int, object] = {}

@@ -89,6 +89,9 @@ def refine_peaks(service: ScoringService, space: SearchSpace, top: list, grid_se
         out, info = refine(service, space, [top[i], *(c for j, c in enumerate(top) if j != i)], grid_search)
         refined.append((out[0], info))
     order = sorted(range(len(refined)), key=lambda n: -refined[n][0][3])  # stable: ties to the better grid peak
-    best_info = {**refined[order[0]][1], "peaks": [{"from": r[1]["from"], "score": r[0][3]} for r in refined]}
+    peaks = [
+        {"from": r[1]["from"], "x_m": r[0][0], "y_m": r[0][1], "yaw_rad": r[0][2], "score": r[0][3]} for r in refined
+    ]
+    best_info = {**refined[order[0]][1], "peaks": peaks}
     seen = {tuple(top[i][:3]) for i in idx}
     return [*(refined[n][0] for n in order), *(c for c in top if tuple(c[:3]) not in seen)], best_info

@@ -23,9 +23,10 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import Camera, camera_from_entry
-from .errors import PerchError
-from .table import Table
+from ..camera import Camera, camera_from_entry, entry_size
+from ..errors import PerchError
+from ..image import image_header_size
+from ..outputs import atomic_write_text
 
 RESULTS_HEADER = "scene_id,im_id,obj_id,score,R,t,time"
 MESH_SUFFIXES = (".obj", ".ply")
@@ -291,8 +292,6 @@ def image_path(scene_dir: Path, im_id: int, kind: str = "rgb") -> Path | None:
 
 def image_size(path: Path) -> tuple[int, int]:
     """(width, height) from the image header without decoding the pixels (size limits: `image.image_header_size`)."""
-    from .image import image_header_size
-
     return image_header_size(path)
 
 
@@ -301,20 +300,44 @@ def camera_for_image(ds: Dataset, entry: dict, rgb: Path, im_id: int, source: Pa
     the principal-point rule is `camera_from_entry`'s, shared with the single-image command."""
     width, height = image_size(rgb)
     if ds.camera_info is not None:
-        w0 = _entry_size_or_none(ds.camera_info, "width", ds.root / "camera.json")
-        h0 = _entry_size_or_none(ds.camera_info, "height", ds.root / "camera.json")
+        w0 = entry_size(ds.camera_info, "width", str(ds.root / "camera.json"))
+        h0 = entry_size(ds.camera_info, "height", str(ds.root / "camera.json"))
         if w0 is not None and h0 is not None and (w0, h0) != (width, height):
             raise PerchError(f"image {rgb} is {width}x{height} but {ds.root / 'camera.json'} says {w0}x{h0}")
     return camera_from_entry(entry, width, height, source=f"{source} image {im_id}", image=str(rgb))
 
 
-def _entry_size_or_none(entry: dict, key: str, source: Path) -> int | None:
-    from .camera import _entry_size
-
-    return _entry_size(entry, key, str(source))
+# ----------------------------------------------------------------------------- camera and depth files
 
 
-# ----------------------------------------------------------------------------- table from depth
+def read_camera_json(path: str | Path, image_id: int | None = None) -> dict:
+    """One camera entry from a BOP `scene_camera.json` (or a flat dict with `cam_K`).
+
+    BOP files map image ids to entries; `image_id` picks one, and may be omitted when
+    the file holds exactly one entry.
+    """
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise PerchError(f"camera file not found: {path}") from None
+    except (OSError, ValueError) as e:
+        raise PerchError(f"cannot read camera file {path}: {e}") from None
+    if not isinstance(data, dict):
+        raise PerchError(f"camera file {path} must hold a JSON object")
+    if "cam_K" in data:
+        return data
+    if image_id is not None:
+        entry = data.get(str(image_id))
+        if entry is None:
+            raise PerchError(f"camera file {path} has no entry for image id {image_id} (has {sorted(data)[:10]})")
+    elif len(data) == 1:
+        entry = next(iter(data.values()))
+    else:
+        raise PerchError(f"camera file {path} has {len(data)} entries; say which with --image-id")
+    if not isinstance(entry, dict) or "cam_K" not in entry:
+        raise PerchError(f"camera entry in {path} has no 'cam_K'")
+    return entry
 
 
 def read_depth_mm(path: str | Path, depth_scale: float) -> np.ndarray:
@@ -332,127 +355,6 @@ def read_depth_mm(path: str | Path, depth_scale: float) -> np.ndarray:
     if raw.ndim != 2:
         raise PerchError(f"depth image {path} must be single-channel (16-bit), got shape {raw.shape}")
     return raw.astype(np.float32) * np.float32(depth_scale)
-
-
-def depth_points_m(depth_mm: np.ndarray, camera: Camera, stride: int = 4) -> np.ndarray:
-    """Back-project every `stride`-th valid depth pixel to camera-frame points (M, 3), metres."""
-    if depth_mm.shape != (camera.height, camera.width):
-        raise PerchError(
-            f"depth image is {depth_mm.shape[1]}x{depth_mm.shape[0]} but the camera is {camera.width}x{camera.height}"
-        )
-    v, u = np.mgrid[0 : camera.height : stride, 0 : camera.width : stride]
-    z = depth_mm[v, u].astype(np.float64) / 1000.0
-    ok = z > 0
-    u, v, z = u[ok], v[ok], z[ok]
-    return np.stack([(u - camera.cx) / camera.fx * z, (v - camera.cy) / camera.fy * z, z], -1)
-
-
-def fit_plane_ransac(
-    points_m: np.ndarray, threshold_m: float = 0.01, iterations: int = 500, seed: int = 0
-) -> tuple[np.ndarray, float, np.ndarray]:
-    """The plane n . X + d = 0 with most points within `threshold_m`, refined by least squares on them.
-
-    Returns (unit normal n, d metres, inlier mask). n is oriented so that d > 0, i.e.
-    the camera origin lies on the normal's side (the side the camera sees). Fixed
-    `seed`: the same depth image always gives the same plane.
-    """
-    P = np.asarray(points_m, dtype=np.float64).reshape(-1, 3)
-    if len(P) < 3:
-        raise PerchError(f"plane fit needs at least 3 depth points, got {len(P)}")
-    rng = np.random.default_rng(seed)
-    best_count, best = -1, None
-    for _ in range(iterations):
-        a, b, c = P[rng.choice(len(P), 3, replace=False)]
-        n = np.cross(b - a, c - a)
-        norm = np.linalg.norm(n)
-        if norm < 1e-12:
-            continue
-        n /= norm
-        count = int(np.count_nonzero(np.abs(P @ n - n @ a) < threshold_m))
-        if count > best_count:
-            best_count, best = count, (n, -float(n @ a))
-    if best is None:
-        raise PerchError("plane fit failed: the depth points are collinear")
-    n, d = best
-    inliers = np.abs(P @ n + d) < threshold_m
-    # Total least squares on the inliers: the normal is the smallest principal axis.
-    Q = P[inliers]
-    centroid = Q.mean(0)
-    n = np.linalg.svd(Q - centroid, full_matrices=False)[2][-1]
-    d = -float(n @ centroid)
-    inliers = np.abs(P @ n + d) < threshold_m
-    if d < 0:
-        n, d = -n, -d
-    return n, d, inliers
-
-
-def table_from_plane(normal_c: np.ndarray, d_m: float) -> Table:
-    """A table frame on the plane n . X + d = 0 (camera frame, metres), +z = n towards the camera.
-
-    Axes chosen deterministically as in the shared ycbv frames' `cam_R_w2c`: x is the
-    camera's x axis projected onto the plane, y = z x x; the origin is where the
-    optical axis meets the plane (the foot of the perpendicular from the camera
-    when the optical axis runs parallel to it).
-    """
-    n = np.asarray(normal_c, dtype=np.float64).reshape(3)
-    n = n / np.linalg.norm(n)
-    if d_m < 0:
-        n, d_m = -n, -d_m
-    x = np.array([1.0, 0.0, 0.0]) - n[0] * n
-    if np.linalg.norm(x) < 1e-6:  # camera x along the normal: fall back to camera y
-        x = np.array([0.0, 1.0, 0.0]) - n[1] * n
-    x /= np.linalg.norm(x)
-    y = np.cross(n, x)
-    R = np.stack([x, y, n], axis=1)  # columns: table axes in camera frame
-    if abs(n[2]) > 1e-6 and -d_m / n[2] > 0:
-        origin = np.array([0.0, 0.0, -d_m / n[2]])
-    else:
-        origin = -d_m * n
-    return Table(R, origin)
-
-
-def table_from_depth(depth_path: str | Path, camera: Camera, depth_scale: float, threshold_m: float = 0.01) -> Table:
-    """RANSAC plane fit of a BOP depth image: the dominant plane taken as the table top."""
-    depth_mm = read_depth_mm(depth_path, depth_scale)
-    try:
-        pts = depth_points_m(depth_mm, camera)
-        n, d, inliers = fit_plane_ransac(pts, threshold_m=threshold_m)
-        return table_from_plane(n, d)
-    except PerchError as e:
-        raise PerchError(f"{depth_path}: {e}") from None
-
-
-def table_source_for(entry: dict, scene_dir: Path, im_id: int, source: str | Path, how: str = "auto") -> str:
-    """Which table frame an image will use: "cam_R_w2c" or "depth RANSAC"; PerchError naming what is missing.
-
-    how: "auto" (the camera entry's cam_R_w2c/cam_t_w2c, else a plane fit to the depth
-    image), "w2c" or "depth" to insist on one.
-    """
-    if how not in ("auto", "w2c", "depth"):
-        raise PerchError(f"table source must be auto, w2c or depth, got {how!r}")
-    if how in ("auto", "w2c") and "cam_R_w2c" in entry and "cam_t_w2c" in entry:
-        return "cam_R_w2c"
-    if how == "w2c":
-        raise PerchError(f"{source}: image {im_id} has no cam_R_w2c/cam_t_w2c (the table frame)")
-    depth = image_path(scene_dir, im_id, "depth")
-    if depth is None or "depth_scale" not in entry:
-        missing = "depth image" if depth is None else f"'depth_scale' in {source}"
-        raise PerchError(
-            f"no table frame for scene {scene_dir.name} image {im_id}: {source} has no cam_R_w2c/cam_t_w2c "
-            f"and the {missing} for a plane fit is missing ({scene_dir / 'depth' / f'{im_id:06d}.png'})"
-        )
-    return "depth RANSAC"
-
-
-def table_for_image(
-    entry: dict, scene_dir: Path, im_id: int, camera: Camera, source: str | Path, how: str = "auto"
-) -> tuple[Table, str]:
-    """The table frame for one image and where it came from (see `table_source_for`)."""
-    kind = table_source_for(entry, scene_dir, im_id, source, how)
-    if kind == "cam_R_w2c":
-        return Table.from_entry(entry, source=f"{source} image {im_id}"), kind
-    depth = image_path(scene_dir, im_id, "depth")
-    return table_from_depth(depth, camera, float(entry["depth_scale"])), kind
 
 
 # ----------------------------------------------------------------------------- results.csv
@@ -477,10 +379,28 @@ class BopResult:
         return f"{self.scene_id},{self.im_id},{self.obj_id},{float(self.score)!r},{R},{t},{float(self.time_s)!r}"
 
 
+def write_json(path: str | Path, data) -> None:
+    """A JSON file as the BOP tools write them (indent 1, final newline), atomically."""
+    atomic_write_text(path, json.dumps(data, indent=1) + "\n")
+
+
+def write_scene(
+    scene_dir: str | Path,
+    cameras: dict[int, dict],
+    gts: dict[int, list[dict]],
+    infos: dict[int, list[dict]] | None = None,
+) -> None:
+    """A scene's scene_camera.json, scene_gt.json [and scene_gt_info.json], keyed by image id (entries in BOP
+    units, mm)."""
+    scene_dir = Path(scene_dir)
+    write_json(scene_dir / "scene_camera.json", {str(k): v for k, v in cameras.items()})
+    write_json(scene_dir / "scene_gt.json", {str(k): v for k, v in gts.items()})
+    if infos is not None:
+        write_json(scene_dir / "scene_gt_info.json", {str(k): v for k, v in infos.items()})
+
+
 def write_results(path: str | Path, results: list[BopResult]) -> None:
     """Write a whole results file atomically (unique temporary file, fsync, rename)."""
-    from .outputs import atomic_write_text
-
     atomic_write_text(path, "".join(line + "\n" for line in [RESULTS_HEADER, *(r.line() for r in results)]))
 
 

@@ -1,0 +1,116 @@
+"""`python -m perch_warp eval`: its options and entry point (see perch_warp.eval)."""
+
+from __future__ import annotations
+
+import argparse
+import shlex
+import sys
+from pathlib import Path
+
+from ..camera import Camera
+from ..errors import PerchError
+from ..options import add_method_arguments, add_search_arguments, engine_config_from_args, search_space_from_args
+from ..outputs import check_output_dir
+from ..table import RestingPose, Table
+from .journal import NOT_SEARCH_OPTIONS, RESULTS_FILE
+from .protocol import EngineEstimator, Estimator, evaluate
+
+# Recorded separately in eval_config.json.
+_EVAL_ARGS = {"dataset", "split", "models", "table_source"}
+
+
+def _ids(values: list[str] | None, flag: str) -> list[int] | None:
+    """ "3,4,8,9" or "3 4 8 9" -> [3, 4, 8, 9]."""
+    if not values:
+        return None
+    out = []
+    for v in values:
+        for part in str(v).split(","):
+            if part.strip():
+                try:
+                    out.append(int(part))
+                except ValueError:
+                    raise PerchError(f"{flag} takes integer ids like 3,4,8,9, got {part!r}") from None
+    return out
+
+
+def add_arguments(parser: argparse.ArgumentParser) -> None:
+    """Options of `python -m perch_warp eval` (method and search options are the CLI's shared ones)."""
+    d = parser.add_argument_group("dataset")
+    d.add_argument("--dataset", required=True, type=Path, help="BOP dataset folder (models/, SPLIT/SCENE/...)")
+    d.add_argument("--split", default="test", help="split folder (default: test)")
+    d.add_argument("--scenes", nargs="+", metavar="ID", help="scene ids, e.g. 48,49 (default: all)")
+    d.add_argument("--objects", nargs="+", metavar="ID", help="object ids, e.g. 3,4,8,9 (default: all with a mesh)")
+    d.add_argument("--max-images", type=int, metavar="N", help="only the first N images that have a target")
+    d.add_argument("--models", type=Path, metavar="DIR", help="meshes folder (default: dataset_info.json or models/)")
+    d.add_argument(
+        "--table-source",
+        choices=("auto", "w2c", "depth"),
+        default="auto",
+        help="table frame: cam_R_w2c/cam_t_w2c, else a RANSAC plane fit to depth (auto); or insist on one",
+    )
+    o = parser.add_argument_group("output")
+    o.add_argument("--out", required=True, type=Path, metavar="OUTDIR", help="results folder (resumed if it exists)")
+    o.add_argument("--restart", action="store_true", help="discard earlier results in OUTDIR instead of resuming")
+    o.add_argument(
+        "--gallery", type=int, default=4, metavar="K", help="best and worst K cases in gallery.png (0: none)"
+    )
+    o.add_argument("--no-plots", action="store_true", help="write no PNG plots")
+    add_method_arguments(parser)
+    add_search_arguments(parser)
+
+
+def run(args: argparse.Namespace) -> int:
+    """Entry point of `python -m perch_warp eval`; PerchError propagates to the CLI."""
+
+    check_output_dir(args.out, "--out")  # before anything is read or searched
+    objects = _ids(args.objects, "--objects")
+    scenes = _ids(args.scenes, "--scenes")
+    if args.max_images is not None and args.max_images < 1:
+        raise PerchError(f"--max-images must be at least 1, got {args.max_images}")
+    config = engine_config_from_args(args)  # validates the method options before any work
+    options = {k: v for k, v in sorted(vars(args).items()) if k not in NOT_SEARCH_OPTIONS and k not in _EVAL_ARGS}
+
+    def space_fn(camera: Camera, table: Table, resting: RestingPose):
+        # The region depends on the view and the table only: never on the ground truth.
+        return search_space_from_args(args, camera, table)
+
+    def make_estimator(model_paths: dict[int, Path]) -> Estimator:
+        return EngineEstimator(model_paths, args.weights, args.device, config)
+
+    command = shlex.join(["python", "-m", "perch_warp", *sys.argv[1:]])
+    try:
+        summary = evaluate(
+            args.dataset,
+            args.out,
+            make_estimator=make_estimator,
+            space_fn=space_fn,
+            split=args.split,
+            scenes=scenes,
+            objects=objects,
+            max_images=args.max_images,
+            models_dir=args.models,
+            table_source=args.table_source,
+            options=options,
+            restart=args.restart,
+            plots=not args.no_plots,
+            gallery=args.gallery,
+            command=command,
+        )
+    except KeyboardInterrupt:
+        print(
+            f"\ninterrupted: finished targets are saved in {args.out / RESULTS_FILE}; "
+            "run the same command again to continue",
+            file=sys.stderr,
+        )
+        return 130
+    print(summary["table_text"])
+    print(f"wrote {', '.join(summary['outputs'])} in {args.out}")
+    if summary["n_failed"]:
+        print(
+            f"perch_warp: {summary['n_failed']} of {summary['n_targets']} targets failed (reasons in "
+            f"{args.out / 'per_target.csv'}); the others are evaluated",
+            file=sys.stderr,
+        )
+        return 1
+    return 0

@@ -1,0 +1,348 @@
+"""Errors per target (ADD-S, ADD, translation, yaw, miss class), per_target.csv, the summary and its table."""
+
+from __future__ import annotations
+
+import csv
+import io
+import math
+from collections import defaultdict
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from .. import bop, pose_error
+from ..bop import IMAGE_LABEL_KEYS, Selection, TableCache
+from ..errors import PerchError
+from ..mesh import load_mesh
+from ..outputs import atomic_write_text
+from ..table import decompose_on_table
+from .journal import Done
+
+ADDS_THRESHOLD_M = 0.02
+
+
+AUC_MAX_THRESHOLD_M = 0.1
+
+
+OCCLUSION_BINS = np.linspace(0.0, 1.0, 11)
+
+
+def miss_class(adds_mm: float, score: float, probe_score: float | None) -> str:
+    """ "ok" below 2 cm ADD-S; else a "search miss" when the ground truth's cell scores higher than the
+    answer (the score prefers the truth, the search did not find it), else a "score miss" (the score
+    itself prefers the wrong place); "" without a probe."""
+    if adds_mm < 1000.0 * ADDS_THRESHOLD_M:
+        return "ok"
+    if probe_score is None or not np.isfinite(probe_score):
+        return ""
+    return "search miss" if probe_score > score + 1e-6 else "score miss"
+
+
+class GeometryCache:
+    """Model vertices/faces (metres) per object, and the subsampled points for ADD(-S)."""
+
+    def __init__(self, model_paths: dict[int, Path], max_points: int = pose_error.DEFAULT_MAX_POINTS):
+        self.model_paths = model_paths
+        self.max_points = max_points
+        self._cache: dict[int, tuple[np.ndarray, np.ndarray, np.ndarray]] = {}
+
+    def get(self, obj_id: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(vertices_m (N, 3), faces (F, 3), ADD-S points_m (<= max_points, 3))."""
+        if obj_id not in self._cache:
+            mesh = load_mesh(self.model_paths[obj_id])
+            V = np.asarray(mesh.vertices_m, dtype=np.float64)
+            self._cache[obj_id] = (V, np.asarray(mesh.faces), pose_error.subsample_points(V, self.max_points))
+        return self._cache[obj_id]
+
+
+def compute_errors(selection: Selection, done: dict, tables: TableCache, geometry: GeometryCache) -> list[dict]:
+    """One row per finished target: ADD-S/ADD/translation in mm, yaw error in degrees, and the poses on the table."""
+    rows = []
+    for im in selection.images:
+        table, how = tables.get(im)
+        for t in im.targets:
+            d = done.get(t.key)
+            if d is None:
+                continue
+            _, _, pts = geometry.get(t.obj_id)
+            _, xg, yg, yawg = decompose_on_table(table, t.R_gt, t.t_gt_m)
+            try:
+                _, xe, ye, yawe = decompose_on_table(table, d.R, d.t_m)
+            except PerchError:  # a foreign estimate that is not a rotation: it still gets ADD-S
+                xe = ye = yawe = float("nan")
+            rows.append(
+                {
+                    "scene_id": t.scene_id,
+                    "im_id": t.im_id,
+                    "inst": t.inst,
+                    "obj_id": t.obj_id,
+                    "visib_fract": t.visib_fract,
+                    **{k: t.labels.get(k) for k in IMAGE_LABEL_KEYS},
+                    "adds_mm": 1000.0 * pose_error.add_s(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
+                    "add_mm": 1000.0 * pose_error.add(d.R, d.t_m, t.R_gt, t.t_gt_m, pts),
+                    "te_mm": 1000.0 * pose_error.translation_error(d.t_m, t.t_gt_m),
+                    "yaw_err_deg": math.degrees(pose_error.yaw_error(yawe, yawg))
+                    if np.isfinite(yawe)
+                    else float("nan"),
+                    "x_gt_m": xg,
+                    "y_gt_m": yg,
+                    "yaw_gt_deg": math.degrees(yawg),
+                    "x_est_m": xe,
+                    "y_est_m": ye,
+                    "yaw_est_deg": math.degrees(yawe),
+                    "score": d.score,
+                    "time_s": d.time_s,
+                    "table": how,
+                    "gt_in_region": d.details.get("gt_in_region"),
+                    "n_candidates": d.details.get("n_candidates"),
+                    "n_evaluated": d.details.get("n_evaluated"),
+                    **_diagnostics(d),
+                    "R_est": d.R,
+                    "t_est_m": d.t_m,
+                    "R_gt": t.R_gt,
+                    "t_gt_m": t.t_gt_m,
+                }
+            )
+    for r in rows:
+        r["miss"] = miss_class(r["adds_mm"], r["score"], r["gt_cell_score"])
+    return rows
+
+
+def _diagnostics(d: Done) -> dict:
+    """The ground truth's cell (its best score, the answer's margin over it) and the answer's silhouette."""
+    probe = d.details.get("probe") or {}
+    sil = d.details.get("silhouette") or {}
+    cell = probe.get("score")
+    return {
+        "gt_cell_score": cell,
+        "margin": d.score - cell if cell is not None else None,
+        "est_points": sil.get("points"),
+        "est_edge_share": sil.get("edge_share"),
+    }
+
+
+_PER_TARGET_COLUMNS = [
+    "scene_id",
+    "im_id",
+    "inst",
+    "obj_id",
+    "visib_fract",
+    *IMAGE_LABEL_KEYS,
+    "adds_mm",
+    "add_mm",
+    "te_mm",
+    "yaw_err_deg",
+    "x_gt_m",
+    "y_gt_m",
+    "yaw_gt_deg",
+    "x_est_m",
+    "y_est_m",
+    "yaw_est_deg",
+    "score",
+    "time_s",
+    "table",
+    "gt_in_region",
+    "n_candidates",
+    "n_evaluated",
+    "gt_cell_score",
+    "margin",
+    "miss",
+    "est_points",
+    "est_edge_share",
+]
+
+
+def write_per_target(path: Path, rows: list[dict], failed: Sequence[dict] = ()) -> None:
+    """per_target.csv: errors in mm / degrees, table-frame poses in metres / degrees; then the failed
+    targets, their ids and `failure` (the reason) only. Written atomically."""
+
+    columns = [*_PER_TARGET_COLUMNS, "failure"]
+    buf = io.StringIO()
+    w = csv.writer(buf)
+    w.writerow(columns)
+    for r in [*rows, *failed]:
+        w.writerow(["" if r.get(c) is None else (f"{r[c]:.10g}" if isinstance(r[c], float) else r[c]) for c in columns])
+
+    atomic_write_text(path, buf.getvalue())
+
+
+def _metrics(rows: list[dict]) -> dict:
+    adds_m = np.array([r["adds_mm"] for r in rows], dtype=np.float64) / 1000.0
+    add_m = np.array([r["add_mm"] for r in rows], dtype=np.float64) / 1000.0
+    te = np.array([r["te_mm"] for r in rows], dtype=np.float64)
+    yaw = np.array([r["yaw_err_deg"] for r in rows], dtype=np.float64)
+    times = np.array([r["time_s"] for r in rows], dtype=np.float64)
+
+    def stat(fn, a):
+        a = a[np.isfinite(a)]
+        return float(fn(a)) if a.size else None
+
+    return {
+        "n": len(rows),
+        "auc": pose_error.auc(adds_m, AUC_MAX_THRESHOLD_M),
+        "auc_posecnn": pose_error.auc_posecnn(adds_m, AUC_MAX_THRESHOLD_M),
+        "adds_below_2cm_pct": pose_error.accuracy_below(adds_m, ADDS_THRESHOLD_M),
+        "auc_add": pose_error.auc(add_m, AUC_MAX_THRESHOLD_M),
+        "te_below_1cm_pct": pose_error.accuracy_below(te / 1000.0, 0.01),
+        "misses": {c: sum(1 for r in rows if r.get("miss") == c) for c in ("search miss", "score miss")},
+        "mean_adds_mm": stat(np.mean, adds_m * 1000.0),
+        "median_adds_mm": stat(np.median, adds_m * 1000.0),
+        "mean_te_mm": stat(np.mean, te),
+        "median_te_mm": stat(np.median, te),
+        "mean_yaw_err_deg": stat(np.mean, yaw),
+        "median_yaw_err_deg": stat(np.median, yaw),
+        "mean_time_s": stat(np.mean, times),
+        "gt_outside_region": sum(1 for r in rows if r["gt_in_region"] is False),
+    }
+
+
+def summarize(rows: list[dict], ds: bop.Dataset, selection: Selection) -> dict:
+    """Metrics per object, their mean over objects (thesis Table 4.1's "All Objects"), and pooled over targets."""
+    by_obj: dict[int, list[dict]] = defaultdict(list)
+    for r in rows:
+        by_obj[r["obj_id"]].append(r)
+    objects = {}
+    for obj_id in sorted(by_obj):
+        m = _metrics(by_obj[obj_id])
+        m["name"] = ds.object_name(obj_id)
+        objects[str(obj_id)] = m
+    keys = ("auc", "auc_posecnn", "adds_below_2cm_pct")
+    mean_over_objects = {k: float(np.mean([o[k] for o in objects.values()])) if objects else None for k in keys}
+    pooled = _metrics(rows) if rows else {}
+    summary = {
+        "metric": "ADD-S",
+        "auc_max_threshold_m": AUC_MAX_THRESHOLD_M,
+        "adds_threshold_m": ADDS_THRESHOLD_M,
+        "n_images": len(selection.images),
+        "n_targets": len(selection.targets),
+        "n_evaluated": len(rows),
+        "skipped_no_model": {str(k): v for k, v in sorted(selection.skipped_no_model.items())},
+        "objects": objects,
+        "all_objects": mean_over_objects,
+        "pooled": pooled,
+        "mean_runtime_s_per_target": pooled.get("mean_time_s"),
+    }
+    occ = occlusion_accuracy(rows)
+    if occ is not None:
+        summary["occlusion"] = occ
+    by_label = label_metrics(rows)
+    if by_label:
+        summary["by_label"] = by_label
+    return summary
+
+
+def label_metrics(rows: list[dict]) -> dict[str, dict[str, dict]]:
+    """Metrics of the targets pooled over objects, per value of each image label that occurs.
+
+    Values keep their order of first appearance (scene, image order), so a generator's
+    "normal" before "harsh" stays that way; targets without a key are left out of its split.
+    """
+    out: dict[str, dict[str, dict]] = {}
+    for key in IMAGE_LABEL_KEYS:
+        groups: dict[str, list[dict]] = {}
+        for r in rows:
+            value = r.get(key)
+            if value is not None:
+                groups.setdefault(value, []).append(r)
+        if groups:
+            out[key] = {value: _metrics(rs) for value, rs in groups.items()}
+    return out
+
+
+def occlusion_accuracy(rows: list[dict]) -> dict | None:
+    """ADD-S < 2 cm accuracy (%) in bins of occlusion = 1 - visib_fract; None without visib_fract."""
+    rows = [r for r in rows if r["visib_fract"] is not None]
+    if not rows:
+        return None
+
+    def binned(rs):
+        occ = np.array([1.0 - r["visib_fract"] for r in rs])
+        ok = np.array([r["adds_mm"] < ADDS_THRESHOLD_M * 1000.0 for r in rs])
+        idx = np.clip(np.digitize(occ, OCCLUSION_BINS[1:-1]), 0, len(OCCLUSION_BINS) - 2)
+        n = np.bincount(idx, minlength=len(OCCLUSION_BINS) - 1)
+        hits = np.bincount(idx, weights=ok.astype(float), minlength=len(OCCLUSION_BINS) - 1)
+        acc = [float(100.0 * h / k) if k else None for h, k in zip(hits, n, strict=True)]
+        return {"n": n.tolist(), "accuracy_pct": acc}
+
+    by_obj: dict[int, list[dict]] = defaultdict(list)
+    for r in rows:
+        by_obj[r["obj_id"]].append(r)
+    return {
+        "bin_edges_occlusion": OCCLUSION_BINS.tolist(),
+        "all": binned(rows),
+        "objects": {str(k): binned(v) for k, v in sorted(by_obj.items())},
+    }
+
+
+def format_table(summary: dict) -> str:
+    """The summary as thesis Table 4.1: AUC and ADD-S < 2 cm per object, all objects, mean runtime."""
+    lines = [f"{'objects':<26}{'n':>6}{'AUC':>9}{'<2cm':>9}{'te med mm':>11}{'yaw med deg':>13}"]
+    lines.append("-" * len(lines[0]))
+
+    def fmt(v, spec):
+        return format(v, spec) if v is not None and np.isfinite(v) else "-"
+
+    for obj in summary["objects"].values():
+        lines.append(
+            f"{obj['name'][:25]:<26}{obj['n']:>6}{fmt(obj['auc'], '9.2f')}"
+            f"{fmt(obj['adds_below_2cm_pct'], '9.2f')}"
+            f"{fmt(obj['median_te_mm'], '11.1f')}{fmt(obj['median_yaw_err_deg'], '13.1f')}"
+        )
+    lines.append("-" * len(lines[0]))
+    a, p = summary["all_objects"], summary["pooled"]
+    lines.append(f"{'All Objects (mean)':<26}{'':>6}{fmt(a['auc'], '9.2f')}{fmt(a['adds_below_2cm_pct'], '9.2f')}")
+    if p:
+        lines.append(
+            f"{'All targets (pooled)':<26}{p['n']:>6}{fmt(p['auc'], '9.2f')}"
+            f"{fmt(p['adds_below_2cm_pct'], '9.2f')}"
+            f"{fmt(p['median_te_mm'], '11.1f')}{fmt(p['median_yaw_err_deg'], '13.1f')}"
+        )
+    by_label = summary.get("by_label") or {}
+    if by_label:
+        # Below the All Objects mean, so that row still reads as the mean of the object rows above it.
+        lines.append("-" * len(lines[0]))
+        for key, values in by_label.items():
+            for value, m in values.items():
+                lines.append(
+                    f"{f'{key} = {value}'[:25]:<26}{m['n']:>6}{fmt(m['auc'], '9.2f')}"
+                    f"{fmt(m['adds_below_2cm_pct'], '9.2f')}"
+                    f"{fmt(m['median_te_mm'], '11.1f')}{fmt(m['median_yaw_err_deg'], '13.1f')}"
+                )
+        lines.append("-" * len(lines[0]))
+    rt = summary.get("mean_runtime_s_per_target")
+    lines.append(f"{'Mean Runtime':<26}{'':>6}{fmt(rt, '8.1f')}s per target")
+    return "\n".join(lines + _table_notes(summary, fmt))
+
+
+def _table_notes(summary: dict, fmt) -> list[str]:
+    """The lines under the table: what the columns mean, skipped and failed targets, miss classes."""
+    p, by_label = summary["pooled"], summary.get("by_label") or {}
+    notes = ["ADD-S AUC over 0-10 cm (exact area, %); <2cm: % of targets with ADD-S < 2 cm."]
+    if by_label:
+        notes.append("Label rows (e.g. lighting = harsh): targets of all objects, by their image's scene_camera label.")
+    skipped = summary.get("skipped_no_model") or {}
+    if skipped:
+        notes.append(f"Skipped (no mesh): {sum(skipped.values())} instances of objects {', '.join(skipped)}.")
+    if p:
+        notes.append(
+            f"Pooled ADD AUC {fmt(p.get('auc_add'), '.2f')}; translation error < 1 cm: "
+            f"{fmt(p.get('te_below_1cm_pct'), '.2f')} %."
+        )
+        misses = p.get("misses") or {}
+        if any(misses.values()):
+            notes.append(
+                f"Misses (>= 2 cm): {misses.get('score miss', 0)} score misses (the answer outscores the ground "
+                f"truth's cell), {misses.get('search miss', 0)} search misses (the truth's cell scores higher)."
+            )
+    outside = p.get("gt_outside_region") if p else 0
+    if outside:
+        notes.append(f"{outside} targets lie outside their search region.")
+    if summary.get("n_gt_rotations_projected"):
+        notes.append(
+            f"{summary['n_gt_rotations_projected']} ground-truth rotations were near-orthonormal and projected "
+            f"onto SO(3) (tolerance max |R R^T - I| <= {summary['gt_rotation_tolerance']:g})."
+        )
+    if summary.get("n_failed"):
+        notes.append(f"FAILED: {summary['n_failed']} targets (reasons in per_target.csv and summary.json).")
+    return notes

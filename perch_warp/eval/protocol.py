@@ -1,0 +1,321 @@
+"""The evaluation loop over targets (`evaluate`) and the estimator adapter around `Engine`."""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from scipy.ndimage import binary_erosion
+from tqdm import tqdm
+
+from .. import bop, pose_error
+from ..bop import Selection, TableCache, Target, select_targets
+from ..camera import Camera
+from ..errors import PerchError
+from ..image import load_rgb
+from ..mesh import load_mesh
+from ..options import SearchTooLarge
+from ..outputs import atomic_write_text, check_output_dir, folder_lock
+from ..search_space import SearchSpace
+from ..table import RestingPose, Table, decompose_on_table
+from .journal import (
+    JOURNAL_FILE,
+    RESULTS_FILE,
+    Done,
+    append_failure,
+    append_journal,
+    check_config,
+    json_default,
+    load_state,
+    repair_journal,
+    write_results,
+)
+from .metrics import GeometryCache, compute_errors, format_table, summarize, write_per_target
+from .plots import make_plots
+
+# ----------------------------------------------------------------------------- estimator
+
+
+@dataclass
+class Estimate:
+    """A model -> camera pose (metres) with the searcher's score and free-form details."""
+
+    R_m2c: np.ndarray
+    t_m2c_m: np.ndarray
+    score: float
+    details: dict = field(default_factory=dict)
+
+
+#: (target, image_rgb uint8 HxWx3, camera, table, resting, space) -> Estimate
+Estimator = Callable[[Target, np.ndarray, Camera, Table, RestingPose, object], Estimate]
+#: (camera, table, resting) -> search space (must not look at the ground-truth x, y, yaw)
+SpaceFn = Callable[[Camera, Table, RestingPose], object]
+
+
+class EngineEstimator:
+    """The real search: one `Engine` per object, built on first use (outside the timed call)."""
+
+    def __init__(
+        self, model_paths: dict[int, Path], weights_spec: str = "auto", device: str | None = None, config=None
+    ):
+        self.model_paths = model_paths
+        self.weights_spec = weights_spec
+        self.device = device
+        self.config = config  # EngineConfig, None: its defaults
+        self._weights = None
+        self._engines: dict[int, object] = {}
+
+    def prepare(self, obj_id: int) -> None:
+        if obj_id in self._engines:
+            return
+        # Imported on first use: Warp and torch take seconds to import, and other estimators (tests, tools) never
+        # need them.
+        from ..engine import Engine
+        from ..features import load_feature_weights
+
+        if self._weights is None:
+            self._weights = load_feature_weights(self.weights_spec)
+        mesh = load_mesh(self.model_paths[obj_id])
+        self._engines[obj_id] = Engine(mesh, self._weights, self.device, self.config)
+
+    def __call__(self, target: Target, image_rgb, camera, table, resting, space) -> Estimate:
+        self.prepare(target.obj_id)
+        engine = self._engines[target.obj_id]
+        # Diagnostics only: the ground truth's cell is scored after the search, on the same photo.
+        _, xg, yg, yawg = decompose_on_table(table, target.R_gt, target.t_gt_m)
+        res = engine.estimate(image_rgb, camera, table, resting, space, progress=False, probe=(xg, yg, yawg))
+        T = np.asarray(res.T_m2c, dtype=np.float64)
+        details = {
+            "n_candidates": int(res.n_candidates),
+            "n_evaluated": int(res.info.get("evaluated", res.n_candidates)),  # scored: fewer when pruned
+            "timings_s": {k: float(v) for k, v in res.timings.items()},
+            "device": res.device,
+            "top_k": [{"x_m": c.x_m, "y_m": c.y_m, "yaw_rad": c.yaw_rad, "score": c.score} for c in res.top_k],
+        }
+        if "refine" in res.info:  # where the refinement started (the grid's best) and how far it went
+            details["refine"] = res.info["refine"]
+        details["probe"] = res.info["probe"]
+        details["silhouette"] = silhouette_points(engine, camera, T)
+        return Estimate(T[:3, :3], T[:3, 3], float(res.score), details)
+
+
+def silhouette_points(engine, camera: Camera, T_m2c: np.ndarray) -> dict:
+    """A pose's silhouette on the engine's feature grid: its feature points (window centres on the
+    rendered mask, inside the photo) and the share of them at the edge (whose window is not wholly on
+    the mask: those compared with windows composited with the photo)."""
+    _, mask = engine.render(camera, T_m2c)
+    ks, s = engine.weights.kernel_size, engine.config.stride
+    half = ks // 2
+    inner = binary_erosion(mask, np.ones((ks, ks), bool), border_value=0)
+    centres = np.zeros_like(mask)
+    centres[half : camera.height - half : s, half : camera.width - half : s] = True
+    n = int((mask & centres).sum())
+    edge = int((mask & centres & ~inner).sum())
+    return {"points": n, "edge_share": edge / n if n else float("nan")}
+
+
+def visible_table_space(
+    xy_step_m: float = 0.01, yaw_step_rad: float = math.radians(5.0), clip_m: float = 1.0
+) -> SpaceFn:
+    """The default region: the table the image sees, clipped to clip_m x clip_m (no ground truth used)."""
+
+    def space_fn(camera: Camera, table: Table, resting: RestingPose):
+        return SearchSpace.visible_table(camera, table, xy_step_m=xy_step_m, yaw_step_rad=yaw_step_rad, clip_m=clip_m)
+
+    return space_fn
+
+
+# ----------------------------------------------------------------------------- resume state
+
+
+# ----------------------------------------------------------------------------- the run
+
+
+def evaluate(
+    dataset_dir: str | Path,
+    out_dir: str | Path,
+    *,
+    make_estimator: Callable[[dict[int, Path]], Estimator],
+    space_fn: SpaceFn,
+    split: str = "test",
+    scenes: Sequence[int] | None = None,
+    objects: Sequence[int] | None = None,
+    max_images: int | None = None,
+    models_dir: str | Path | None = None,
+    table_source: str = "auto",
+    options: dict | None = None,
+    restart: bool = False,
+    progress: bool = True,
+    plots: bool = True,
+    gallery: int = 4,
+    max_points: int = pose_error.DEFAULT_MAX_POINTS,
+    command: str = "",
+) -> dict:
+    """Run (or continue) the evaluation and write every output; returns the summary dict.
+
+    `make_estimator(mesh paths by object id)` is called once, only when targets remain;
+    the estimator it returns is called once per unfinished target, and `space_fn` gives
+    its search region. `options` (JSON)
+    are the search settings, recorded in eval_config.json and checked on resume.
+    """
+
+    out_dir = check_output_dir(out_dir, "--out")
+    ds = bop.open_dataset(dataset_dir, split, models_dir)
+    selection = select_targets(ds, scenes, objects, max_images, table_source)
+    if not selection.targets:
+        raise PerchError(f"no targets: no instance of objects {sorted(objects or [])} with a mesh in {ds.split_dir}")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    with folder_lock(out_dir, "OUTDIR"):
+        return _evaluate_locked(
+            ds, selection, out_dir, make_estimator, space_fn, split, table_source, options, restart, progress,
+            plots, gallery, max_points, command, dataset_dir,
+        )  # fmt: skip
+
+
+def _evaluate_locked(
+    ds, selection, out_dir, make_estimator, space_fn, split, table_source, options, restart, progress, plots,
+    gallery, max_points, command, dataset_dir,
+) -> dict:  # fmt: skip
+    """`evaluate` once OUTDIR is locked: the state, the loop over targets and the outputs."""
+    config = {
+        "dataset": str(Path(dataset_dir).resolve()),
+        "split": split,
+        "table_source": table_source,
+        "options": options or {},
+    }
+    check_config(out_dir, config, restart)
+    repair_journal(out_dir)
+    done, foreign, failed = load_state(out_dir, selection)
+    tables = TableCache(table_source)
+    _run_targets(out_dir, selection, done, foreign, failed, tables, make_estimator, space_fn, progress)
+    write_results(out_dir, selection, done, foreign)  # canonical order, also when nothing was left to do
+    run = {"dataset": str(ds.root), "split": split, "command": command, "options": options or {}}
+    run["table_source"] = table_source
+    return _write_outputs(out_dir, ds, selection, done, failed, tables, max_points, run, plots, gallery)
+
+
+def _run_targets(out_dir, selection, done, foreign, failed, tables, make_estimator, space_fn, progress) -> None:
+    """Search every target not yet done, journalling each (or its failure) and rewriting results.csv."""
+    todo = [(im, t) for im in selection.images for t in im.targets if t.key not in done]
+    n_before = len(selection.targets) - len(todo)
+    if n_before and todo:
+        print(f"resuming: {n_before} of {len(selection.targets)} targets already done in {out_dir}", file=sys.stderr)
+    bar = tqdm(total=len(todo), unit="target", desc="eval", disable=not progress or not todo, dynamic_ncols=True)
+    state = {"estimator": None, "image_key": None, "image": None}
+    try:
+        for im, target in todo:
+            # One bad target must not stop a long evaluation: whatever fails in it (its ground truth, its
+            # table, its search) is journalled as its failure and the run goes on. Options that would fail
+            # every target alike (SearchTooLarge) and interruptions still stop the run.
+            try:
+                d = _run_target(im, target, state, tables, make_estimator, space_fn, selection)
+            except Exception as e:  # noqa: BLE001 - recorded with its reason; see above
+                if _stops_the_run(e):
+                    raise
+                reason = str(e) if isinstance(e, PerchError) else f"{type(e).__name__}: {e}"
+                failed[target.key] = " ".join(reason.split())
+                append_failure(out_dir, target, reason)
+                print(f"target {target.key} (obj {target.obj_id}) failed: {failed[target.key]}", file=sys.stderr)
+                bar.update(1)
+                continue
+            # Journal first: if the rewrite below is interrupted, the journal still has the target.
+            append_journal(out_dir, target, d)
+            done[target.key] = d
+            failed.pop(target.key, None)
+            write_results(out_dir, selection, done, foreign)
+            bar.set_postfix_str(f"{target.scene_id}/{target.im_id} obj {target.obj_id} {d.time_s:.1f}s")
+            bar.update(1)
+    finally:
+        bar.close()
+
+
+def _run_target(im, target: Target, state: dict, tables: TableCache, make_estimator, space_fn, selection) -> Done:
+    """One target's search, timed; `state` carries the estimator and the current image between targets."""
+    if target.problem:
+        raise PerchError(target.problem)
+    if state["image_key"] != (im.scene_id, im.im_id):
+        state["image"] = None
+        state["image"] = load_rgb(im.rgb)
+        state["image_key"] = (im.scene_id, im.im_id)
+    if state["image"] is None:
+        raise PerchError(f"image {im.rgb} could not be read (see the image's first target)")
+    table, table_how = tables.get(im)
+    resting, _, _, _ = decompose_on_table(table, target.R_gt, target.t_gt_m)
+    space = space_fn(im.camera, table, resting)
+    if state["estimator"] is None:
+        state["estimator"] = make_estimator(selection.model_paths)
+    estimator = state["estimator"]
+    prepare = getattr(estimator, "prepare", None)
+    if callable(prepare):
+        prepare(target.obj_id)  # building the engine is not part of the per-target runtime
+    t0 = time.perf_counter()
+    est = estimator(target, state["image"], im.camera, table, resting, space)
+    dt = time.perf_counter() - t0
+    details = dict(est.details)
+    details["table"] = table_how
+    details.update(_space_details(space, table, target))
+    R = np.asarray(est.R_m2c, dtype=np.float64).reshape(3, 3)
+    return Done(target.obj_id, R, np.asarray(est.t_m2c_m, dtype=np.float64).reshape(3), float(est.score), dt, details)
+
+
+def _write_outputs(out_dir, ds, selection, done, failed, tables, max_points, run: dict, plots, gallery) -> dict:
+    """per_target.csv, table.txt, the plots and summary.json from the finished targets; returns the summary."""
+    geometry = GeometryCache(selection.model_paths, max_points)
+    rows = compute_errors(selection, done, tables, geometry)
+    write_per_target(out_dir / "per_target.csv", rows, _failed_rows(selection, failed))
+    summary = summarize(rows, ds, selection)
+    summary["n_failed"] = len(failed)
+    summary["failed"] = [{"key": list(k), "reason": r} for k, r in sorted(failed.items())]
+    summary["n_gt_rotations_projected"] = sum(t.gt_projected for t in selection.targets)
+    summary["gt_rotation_tolerance"] = bop.GT_ROTATION_TOLERANCE
+    summary.update(run)
+    summary["outputs"] = [RESULTS_FILE, JOURNAL_FILE, "per_target.csv", "summary.json", "table.txt"]
+    table_text = format_table(summary)
+    atomic_write_text(out_dir / "table.txt", table_text + "\n")
+    if plots and rows:
+        summary["outputs"] += make_plots(out_dir, rows, summary, selection, tables, geometry, gallery)
+    atomic_write_text(out_dir / "summary.json", json.dumps(summary, indent=1, default=json_default) + "\n")
+    summary["table_text"] = table_text
+    return summary
+
+
+def _stops_the_run(e: Exception) -> bool:
+    """Errors that are not one target's: a search-size guard (the same options for every target)."""
+    return isinstance(e, SearchTooLarge)
+
+
+def _failed_rows(selection: Selection, failed: dict) -> list[dict]:
+    return [
+        {"scene_id": t.scene_id, "im_id": t.im_id, "inst": t.inst, "obj_id": t.obj_id, "failure": failed[t.key]}
+        for t in selection.targets
+        if t.key in failed
+    ]
+
+
+def _space_details(space, table: Table, target: Target) -> dict:
+    """Whether the ground truth lies inside the searched region (diagnostic only, never used by the search)."""
+    out: dict = {}
+    try:
+        out["n_candidates"] = int(len(space))
+        _, x, y, _ = decompose_on_table(table, target.R_gt, target.t_gt_m)
+        (x0, x1), (y0, y1) = space.x_range_m, space.y_range_m
+        out["gt_in_region"] = bool(x0 <= x <= x1 and y0 <= y <= y1)
+        out["region_m"] = [[x0, x1], [y0, y1]]
+    except (AttributeError, TypeError):
+        pass
+    return out
+
+
+# ----------------------------------------------------------------------------- errors and metrics
+
+
+# ----------------------------------------------------------------------------- plots
+
+
+# ----------------------------------------------------------------------------- command line
