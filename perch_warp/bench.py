@@ -555,6 +555,7 @@ def format_report(r: dict) -> str:
             f"refinement    cell of the best grid pose at {ref['step_xy_m'] * 1000:.3g} mm / {ref['step_yaw_deg']:.3g} "
             f"deg: {ref['evaluated']:,} of {ref['candidates']:,} poses scored, {ref['rays']:,} rays (not in the "
             f"figures above), score {ref['score_gain']:+.4f}"
+            + (f"; {len(ref['peaks'])} peaks refined" if ref.get("peaks") else "")
         )
     m = r["memory"]
     dev = (
@@ -646,6 +647,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=True,
         help="search the best grid pose's cell at 2 mm / 1 deg, as the CLI does (default: on)",
     )
+    m.add_argument(
+        "--refine-peaks", type=int, default=1, help="refine this many distinct grid peaks, as the CLI (default: 1)"
+    )
     b = parser.add_argument_group("benchmark")
     b.add_argument("--repeat", type=int, default=1, help="timed runs after the warm-up runs (default: 1)")
     b.add_argument(
@@ -685,6 +689,7 @@ def run(args: argparse.Namespace) -> int:
         image_scale=args.image_scale,
         cpu_threads=args.cpu_threads,
         refine=args.refine,
+        refine_peaks=args.refine_peaks,
         renderer=args.renderer,
         conv=args.conv,
     )
@@ -721,6 +726,7 @@ def run(args: argparse.Namespace) -> int:
             "yaw_step_rad": args.yaw_step,
             "search": args.search,
             "refine": args.refine,
+            "refine_peaks": args.refine_peaks,
             "renderer": engine.renderer.method,
             "renderer_option": args.renderer,
             "cull_back_faces": engine.renderer.cull_back_faces,

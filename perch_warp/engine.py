@@ -24,6 +24,7 @@ from .errors import PerchError
 from .features import FeatureWeights
 from .image import check_rgb
 from .mesh import ObjectMesh
+from .peaks import top_location_candidates
 from .render import BoxProjector, MeshRenderer, auto_renderer
 from .result import Candidate, Result
 from .score import FeatureScorer, auto_conv
@@ -161,7 +162,12 @@ class Engine:
         if not np.isfinite(scores).any():
             raise PerchError(f"the search grid projects outside the image ({space.describe()})")
         # Stable order: ties go to the earlier candidate, so results are reproducible.
-        order = top_indices(scores, self.config.pool)
+        cfg = self.config
+        if cfg.refine and cfg.refine_peaks > 1:  # the best candidate of each of the best locations
+            flat = np.arange(len(scores)) if out.flat is None else out.flat
+            order = top_location_candidates(flat, scores, len(space.axes()[2]), cfg.pool)
+        else:
+            order = top_indices(scores, cfg.top_k)
         x, y, yaw = space.at(order if out.flat is None else out.flat[order])
         top = [(float(x[n]), float(y[n]), float(yaw[n]), float(scores[i])) for n, i in enumerate(order)]
         if self.config.refine:

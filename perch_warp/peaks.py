@@ -1,46 +1,74 @@
-"""Distinct peaks of a grid search's best candidates (re-ranking before the refinement, issue 17 (g)).
+"""Distinct peaks of a grid search (re-ranking before the refinement, issue 17 (g)).
 
 Small textured objects have score peaks narrower than a grid step: on a 1 cm / 5° grid the
-true pose's grid neighbours can score below a distractor's, although refined below the grid
-the truth scores higher. Refining only the grid's single best therefore loses such targets.
-The search keeps its best `pool` grid candidates; `distinct_peaks` picks, best first, those
-whose refinement cells cannot overlap (greedy non-maximum suppression on the grid), and each
-peak's cell is refined: the best refined pose wins.
+true pose's grid neighbours can score below a distractor's grid pose, although refined below
+the grid the truth scores higher. Refining only the grid's single best therefore loses such
+targets. With several peaks, the search ranks *locations* (x, y on the table) by their best
+score over yaw and keeps the best `pool` of them (exactly, also when pruned); `distinct_peaks`
+picks, best first, locations farther apart than a few grid steps (greedy non-maximum
+suppression in x, y: the yaw variants of one place are one peak), and each peak's cell is
+refined: the best refined pose wins.
+
+A first version suppressed in (x, y, yaw) and kept the best candidates rather than locations:
+all its peaks were yaw variants of the same distractor (docs/accuracy.md).
 """
 
 from __future__ import annotations
 
-import math
-
 import numpy as np
 
-
-def distinct_peaks(
-    candidates: list[tuple[float, float, float, float]], n: int, xy_sep_m: float, yaw_sep_rad: float
-) -> list[int]:
-    """Indices of up to n candidates (x_m, y_m, yaw_rad, score; table frame, sorted best first), best
-    first, each farther than xy_sep_m in x or y, or yaw_sep_rad in yaw (on the circle), from every
-    candidate kept before it: greedy non-maximum suppression in the grid's box metric."""
-    kept: list[int] = []
-    for i, (x, y, yaw, _) in enumerate(candidates):
-        if len(kept) == n:
-            break
-        if all(not _near(candidates[j], x, y, yaw, xy_sep_m, yaw_sep_rad) for j in kept):
-            kept.append(i)
-    return kept
-
-
-def _near(c, x: float, y: float, yaw: float, xy_sep_m: float, yaw_sep_rad: float) -> bool:
-    dyaw = abs((c[2] - yaw + math.pi) % (2 * math.pi) - math.pi)
-    tol = 1e-9
-    return abs(c[0] - x) <= xy_sep_m + tol and abs(c[1] - y) <= xy_sep_m + tol and dyaw <= yaw_sep_rad + tol
+# Two peaks are one when their locations lie within this many grid steps in x and in y.
+SEPARATION_STEPS = 3
 
 
 def peak_pool(top_k: int, peaks: int) -> int:
-    """Best grid candidates a search keeps to find `peaks` distinct peaks among (the top_k reported
-    included): a peak's own grid neighbours fill the first few dozen places."""
+    """How many best candidates (one peak) or best locations (several peaks) a search keeps."""
     return top_k if peaks <= 1 else max(top_k, 32 * peaks)
 
 
-def as_array(candidates) -> np.ndarray:
-    return np.asarray(candidates, dtype=np.float64).reshape(-1, 4)
+def location_best(flat: np.ndarray, scores: np.ndarray, n_yaw: int) -> tuple[np.ndarray, np.ndarray]:
+    """Per location (flat // n_yaw, flat indices in the space's candidates() order) that has a finite
+    score: (location ids, the flat index of its best candidate); ties go to the lower flat index."""
+    flat = np.asarray(flat, dtype=np.int64)
+    ok = np.isfinite(scores)
+    flat, scores = flat[ok], scores[ok]
+    order = np.lexsort((flat, -scores))  # best first, ties to the lower index
+    loc = flat[order] // n_yaw
+    locs, first = np.unique(loc, return_index=True)
+    return locs, flat[order][first]
+
+
+def top_location_candidates(flat: np.ndarray, scores: np.ndarray, n_yaw: int, m: int) -> np.ndarray:
+    """Positions in (flat, scores) of the best candidate of each of the m best locations, best first
+    (ties to the lower flat index); flat ascending, as every search returns it."""
+    flat = np.asarray(flat, dtype=np.int64)
+    _, best = location_best(flat, scores, n_yaw)
+    pos = np.searchsorted(flat, best)
+    return pos[np.lexsort((best, -scores[pos]))[:m]]
+
+
+def kth_location_score(flat: np.ndarray, scores: np.ndarray, n_yaw: int, k: int) -> float:
+    """The k-th best location's best score among these candidates; -inf with fewer than k locations."""
+    ok = np.isfinite(scores)
+    if not ok.any():
+        return -np.inf
+    loc = np.asarray(flat, dtype=np.int64)[ok] // n_yaw
+    best = np.full(int(loc.max()) + 1, -np.inf)
+    np.maximum.at(best, loc, scores[ok])
+    best = best[np.isfinite(best)]
+    n = len(best)
+    return float(np.partition(best, n - k)[n - k]) if 0 < k <= n else -np.inf
+
+
+def distinct_peaks(candidates: list[tuple[float, float, float, float]], n: int, xy_sep_m: float) -> list[int]:
+    """Indices of up to n candidates (x_m, y_m, yaw_rad, score; table frame, sorted best first), best
+    first, each farther than xy_sep_m in x or in y from every candidate kept before it, whatever its
+    yaw: greedy non-maximum suppression of locations in the grid's box metric."""
+    kept: list[int] = []
+    tol = 1e-9
+    for i, (x, y, _, _) in enumerate(candidates):
+        if len(kept) == n:
+            break
+        if all(abs(candidates[j][0] - x) > xy_sep_m + tol or abs(candidates[j][1] - y) > xy_sep_m + tol for j in kept):
+            kept.append(i)
+    return kept

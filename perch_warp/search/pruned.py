@@ -11,6 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..bound import next_to_score
+from ..peaks import kth_location_score
 from ..search_space import SearchSpace
 from . import scoring
 from .base import Outcome, kth_largest
@@ -33,8 +34,12 @@ def run(service: ScoringService, space: SearchSpace) -> Outcome:
     stats = SearchStats()
     scores = np.full(len(space), -np.inf)
     k = service.config.pool
+    n_yaw = len(space.axes()[2])
+    by_location = service.config.refine and service.config.refine_peaks > 1
 
     def kth_best(scored: np.ndarray) -> float:
+        if by_location:  # the k-th best location (best over yaw): perch_warp.peaks
+            return kth_location_score(scored, scores[scored], n_yaw, k)
         return kth_largest(scores[scored], k)
 
     bf = best_first(service, PoseSource.of_space(space), scores, kth_best, stats)

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from ..peaks import distinct_peaks
+from ..peaks import SEPARATION_STEPS, distinct_peaks
 from ..refine import cell_space
 from ..search_space import FULL_CIRCLE, SearchSpace
 from . import exhaustive, pruned
@@ -76,22 +76,20 @@ def probe(service: ScoringService, space: SearchSpace, pose: tuple[float, float,
 
 
 def refine_peaks(service: ScoringService, space: SearchSpace, top: list, grid_search: str):
-    """`refine` on each of the grid's best `refine_peaks` distinct peaks (perch_warp.peaks: cells that
-    cannot overlap); the best refined pose first, then the other peaks' refined poses, then the
-    runners-up. With one peak, `refine` itself. Returns (top, info); info["peaks"] lists each peak."""
+    """`refine` on each of the grid's best `refine_peaks` distinct peaks (perch_warp.peaks: top holds the
+    best candidate of each of the best locations; peaks are locations apart); the best refined pose
+    first, then the other peaks' refined poses, then the runners-up. With one peak, `refine` itself.
+    Returns (top, info); info["peaks"] lists each peak."""
     cfg = service.config
     if cfg.refine_peaks <= 1:
         return refine(service, space, top, grid_search)
-    reach = cfg.refine_cells
-    idx = distinct_peaks(top, cfg.refine_peaks, 2 * reach * space.xy_step_m, 2 * reach * space.yaw_step_rad)
+    idx = distinct_peaks(top, cfg.refine_peaks, SEPARATION_STEPS * space.xy_step_m)
     refined = []
     for i in idx:
         out, info = refine(service, space, [top[i], *(c for j, c in enumerate(top) if j != i)], grid_search)
         refined.append((out[0], info))
     order = sorted(range(len(refined)), key=lambda n: -refined[n][0][3])  # stable: ties to the better grid peak
-    peaks = [
-        {"from": r[1]["from"], "x_m": r[0][0], "y_m": r[0][1], "yaw_rad": r[0][2], "score": r[0][3]} for r in refined
-    ]
+    peaks = [{"from": i["from"], "x_m": c[0], "y_m": c[1], "yaw_rad": c[2], "score": c[3]} for c, i in refined]
     best_info = {**refined[order[0]][1], "peaks": peaks}
     seen = {tuple(top[i][:3]) for i in idx}
     return [*(refined[n][0] for n in order), *(c for c in top if tuple(c[:3]) not in seen)], best_info
