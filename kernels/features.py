@@ -92,6 +92,14 @@ def covered_fraction(mask: wp.array(dtype=wp.uint8), roff: int, rb: wp.vec4i, u:
     return float(n) / float(ks * ks)
 
 
+@wp.func
+def window_share(sur: Surround, mask: wp.array(dtype=wp.uint8), roff: int, rb: wp.vec4i, u: int, v: int, ks: int):
+    """What a point's cosine is weighted by: its window's covered fraction with by_fraction, else 1."""
+    if sur.by_fraction != 0:
+        return covered_fraction(mask, roff, rb, u, v, ks)
+    return float(1.0)
+
+
 @wp.struct
 class PointWeights:
     """The photo's maps on its feature grid (rows, cols): a compared point scores
@@ -297,9 +305,7 @@ def feature_kernels(C: int):
             out[i] = value
             return
         f = conv_at(image, rgb, mask, pix_off[c], box[c], u, v, Wt, bias, ks, relu, sur)
-        share = float(1.0)
-        if sur.by_fraction != 0:
-            share = covered_fraction(mask, pix_off[c], box[c], u, v, ks)
+        share = window_share(sur, mask, pix_off[c], box[c], u, v, ks)
         out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy, share)
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -337,9 +343,7 @@ def feature_kernels(C: int):
         for ch in range(C):
             f[ch] = feat[at + ch * n]
         f = rectified(f, relu)
-        share = float(1.0)
-        if sur.by_fraction != 0:
-            share = covered_fraction(mask, pix_off[c], box[c], u, v, ks)
+        share = window_share(sur, mask, pix_off[c], box[c], u, v, ks)
         out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy, share)
 
     return vecC, observed_features, score_points, score_features

@@ -26,23 +26,23 @@ def peak_pool(top_k: int, peaks: int) -> int:
     return top_k if peaks <= 1 else max(top_k, 32 * peaks)
 
 
-def location_best(flat: np.ndarray, scores: np.ndarray, n_yaw: int) -> tuple[np.ndarray, np.ndarray]:
-    """Per location (flat // n_yaw, flat indices in the space's candidates() order) that has a finite
-    score: (location ids, the flat index of its best candidate); ties go to the lower flat index."""
+def location_best(flat: np.ndarray, scores: np.ndarray, n_yaw: int) -> np.ndarray:
+    """The flat index of the best candidate of each location (flat // n_yaw, flat indices in the space's
+    candidates() order) that has a finite score; ties go to the lower flat index."""
     flat = np.asarray(flat, dtype=np.int64)
     ok = np.isfinite(scores)
     flat, scores = flat[ok], scores[ok]
     order = np.lexsort((flat, -scores))  # best first, ties to the lower index
     loc = flat[order] // n_yaw
-    locs, first = np.unique(loc, return_index=True)
-    return locs, flat[order][first]
+    _, first = np.unique(loc, return_index=True)
+    return flat[order][first]
 
 
 def top_location_candidates(flat: np.ndarray, scores: np.ndarray, n_yaw: int, m: int) -> np.ndarray:
     """Positions in (flat, scores) of the best candidate of each of the m best locations, best first
     (ties to the lower flat index); flat ascending, as every search returns it."""
     flat = np.asarray(flat, dtype=np.int64)
-    _, best = location_best(flat, scores, n_yaw)
+    best = location_best(flat, scores, n_yaw)
     pos = np.searchsorted(flat, best)
     return pos[np.lexsort((best, -scores[pos]))[:m]]
 

@@ -14,6 +14,7 @@ from .features import FeatureWeights
 from .kernels.features import NOT_ON_MASK, PointWeights, Surround, composite_crops, feature_kernels
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
 from .render import RenderedBatch, flat_offsets
+from .score_terms import SURROUNDS
 
 
 def grid_shape(width: int, height: int, kernel_size: int, stride: int) -> tuple[int, int]:
@@ -75,8 +76,8 @@ class FeatureScorer:
     ):
         if conv not in ("warp", "torch"):
             raise PerchError(f"conv must be warp or torch, got {conv!r}")
-        if surround not in ("photo", "fill", "weighted"):
-            raise PerchError(f"surround must be photo, fill or weighted, got {surround!r}")
+        if surround not in SURROUNDS:
+            raise PerchError(f"surround must be one of {', '.join(SURROUNDS)}, got {surround!r}")
         self.device = device
         self.conv = conv
         self.ks = weights.kernel_size

@@ -86,7 +86,7 @@ def refine_peaks(service: ScoringService, space: SearchSpace, top: list, grid_se
     idx = distinct_peaks(top, cfg.refine_peaks, SEPARATION_STEPS * space.xy_step_m)
     refined = []
     for i in idx:
-        out, info = refine(service, space, [top[i], *(c for j, c in enumerate(top) if j != i)], grid_search)
+        out, info = refine(service, space, [top[i]], grid_search)
         refined.append((out[0], info))
     order = sorted(range(len(refined)), key=lambda n: -refined[n][0][3])  # stable: ties to the better grid peak
     peaks = [{"from": i["from"], "x_m": c[0], "y_m": c[1], "yaw_rad": c[2], "score": c[3]} for c, i in refined]
