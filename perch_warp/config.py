@@ -50,6 +50,10 @@ class EngineConfig:
     # Refine this many distinct peaks of the grid search (perch_warp.peaks), not only its best: the best
     # refined pose wins (narrow peaks of small objects can lose on the grid and win refined). 1: the grid's best.
     refine_peaks: int = 1
+    # Refine this many distinct yaws of each peak's place (perch_warp.peaks.yaw_peaks: every grid yaw
+    # there scored, its best local maxima more than two yaw steps apart): on the grid a place's best yaw
+    # can lie outside the refinement's window around the true yaw. 1: the place's best grid yaw only.
+    refine_yaws: int = 1
     # How kernel #1 finds each ray's surface (perch_warp.render): "bvh", "raster" (the same images),
     # or "auto": per search on the CPU, raster unless the mesh has many faces per pixel of the
     # candidates' boxes (render.auto_renderer); bvh on a GPU (the raster form is not measured there).
@@ -85,6 +89,8 @@ class EngineConfig:
             )
         if self.refine_peaks < 1:
             raise PerchError(f"refine_peaks (--refine-peaks) must be at least 1, got {self.refine_peaks}")
+        if self.refine_yaws < 1:
+            raise PerchError(f"refine_yaws (--refine-yaws) must be at least 1, got {self.refine_yaws}")
         if self.refine_cells < 1:
             raise PerchError(f"refine_cells (--refine-cells) must be at least 1, got {self.refine_cells}")
         if self.conv not in CONVS:

@@ -81,6 +81,13 @@ def _add_search_method_arguments(g) -> None:
         help="refine this many distinct peaks of the grid search and keep the best refined pose (default: 1, "
         "the grid's best only; more recovers small objects whose narrow peak loses on the grid)",
     )
+    g.add_argument(
+        "--refine-yaws",
+        type=int,
+        default=1,
+        help="refine this many distinct yaws of each refined peak's place (default: 1, its best grid yaw; "
+        "more: every grid yaw there is scored and its best local maxima are refined too)",
+    )
 
 
 def _add_compute_arguments(g) -> None:
@@ -241,6 +248,7 @@ def engine_config_from_args(args: argparse.Namespace):
         refine_yaw_rad=math.radians(args.refine_yaw),
         refine_cells=args.refine_cells,
         refine_peaks=args.refine_peaks,
+        refine_yaws=args.refine_yaws,
     )
 
 

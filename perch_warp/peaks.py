@@ -72,3 +72,36 @@ def distinct_peaks(candidates: list[tuple[float, float, float, float]], n: int, 
         if all(abs(candidates[j][0] - x) > xy_sep_m + tol or abs(candidates[j][1] - y) > xy_sep_m + tol for j in kept):
             kept.append(i)
     return kept
+
+
+# Two yaws of one place are one peak when they lie within this many yaw steps: the refinement
+# searches one yaw step either side of a grid yaw, so peaks further apart have disjoint cells.
+YAW_SEPARATION_STEPS = 2
+
+
+def yaw_peaks(scores: np.ndarray, m: int, circular: bool, first: int | None = None) -> list[int]:
+    """Indices of up to m yaw peaks of one place: scores (n_yaw,) over the grid's yaws in order (-inf
+    where not shown). A peak is a local maximum over yaw (neighbours wrap around on the full circle);
+    peaks are kept best first (ties to the lower index), each more than YAW_SEPARATION_STEPS from those
+    kept before. `first`: an index kept first whatever its rank (the place's grid best, already known)."""
+    s = np.asarray(scores, dtype=np.float64)
+    n = len(s)
+    if circular:
+        left, right = np.roll(s, 1), np.roll(s, -1)
+    else:
+        left = np.concatenate([[-np.inf], s[:-1]])
+        right = np.concatenate([s[1:], [-np.inf]])
+    local = np.isfinite(s) & (s >= left) & (s >= right)
+    order = [int(i) for i in np.lexsort((np.arange(n), -s)) if local[i]]
+    kept: list[int] = [] if first is None else [int(first)]
+
+    def apart(i: int, j: int) -> bool:
+        d = abs(i - j)
+        return (min(d, n - d) if circular else d) > YAW_SEPARATION_STEPS
+
+    for i in order:
+        if len(kept) >= m:
+            break
+        if all(apart(i, j) for j in kept):
+            kept.append(i)
+    return kept[:m]

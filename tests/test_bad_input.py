@@ -119,6 +119,7 @@ BAD_ESTIMATE: list[tuple[str, Callable[[Path, Path], dict], str]] = [
     ("batch pixels -5", lambda s, t: {"extra": ["--batch-pixels", "-5"]}, "got -5"),
     ("stride 1000", lambda s, t: {"extra": ["--stride", "1000"]}, "--stride must be 1..32 pixels, got 1000"),
     ("refine peaks 0", lambda s, t: {"extra": ["--refine-peaks", "0"]}, "--refine-peaks) must be at least 1, got 0"),
+    ("refine yaws 0", lambda s, t: {"extra": ["--refine-yaws", "0"]}, "--refine-yaws) must be at least 1, got 0"),
     ("unknown score term", lambda s, t: {"extra": ["--score", "colour=red"]}, "unknown score term 'colour'"),
     ("yaw step nan", lambda s, t: {"extra": ["--yaw-step", "nan"]}, "--yaw-step must be a positive finite"),
     # 4. output paths, before the search

@@ -8,7 +8,14 @@ from _device import DEVICE
 
 from perch_warp.demo import demo_scene
 from perch_warp.engine import Engine, EngineConfig
-from perch_warp.peaks import distinct_peaks, kth_location_score, peak_pool, top_location_candidates
+from perch_warp.peaks import (
+    YAW_SEPARATION_STEPS,
+    distinct_peaks,
+    kth_location_score,
+    peak_pool,
+    top_location_candidates,
+    yaw_peaks,
+)
 from perch_warp.refine import cell_space
 from perch_warp.search_space import SearchSpace
 
@@ -104,3 +111,66 @@ def test_pruned_keeps_the_exhaustive_best_locations(scene, caffe_weights):
     a, b = runs["exhaustive"], runs["pruned"]
     assert a.info["refine"]["peaks"] == b.info["refine"]["peaks"] and a.score == b.score
     assert b.info["k"] == 64  # the rank of the location whose score a bound had to reach
+
+
+def _brute_yaw_peaks(s, m, circular, first):
+    """yaw_peaks written out: local maxima (wrapping when circular), best first, ties to the lower index,
+    each more than YAW_SEPARATION_STEPS from every one kept."""
+    n = len(s)
+
+    def at(i):
+        return s[i % n] if circular or 0 <= i < n else -np.inf
+
+    def dist(i, j):
+        return min(abs(i - j), n - abs(i - j)) if circular else abs(i - j)
+
+    local = [i for i in range(n) if np.isfinite(s[i]) and s[i] >= at(i - 1) and s[i] >= at(i + 1)]
+    kept = [] if first is None else [first]
+    for i in sorted(local, key=lambda i: (-s[i], i)):
+        if len(kept) < m and all(dist(i, j) > YAW_SEPARATION_STEPS for j in kept):
+            kept.append(i)
+    return kept[:m]
+
+
+def test_yaw_peaks_equal_brute_force():
+    rng = np.random.default_rng(2)
+    for _ in range(200):
+        n = int(rng.integers(1, 30))
+        s = np.round(rng.random(n), 1)  # ties
+        s[rng.random(n) < 0.15] = -np.inf
+        circular = bool(rng.integers(0, 2))
+        first = int(rng.integers(0, n)) if rng.random() < 0.5 else None
+        for m in (1, 2, 4):
+            assert yaw_peaks(s, m, circular, first) == _brute_yaw_peaks(s, m, circular, first)
+
+
+def test_yaw_peaks_wrap_on_the_full_circle():
+    s = np.array([0.9, 0.1, 0.2, 0.3, 0.2, 0.1, 0.5, 1.0])  # index 7's neighbours: 6 and 0
+    assert yaw_peaks(s, 3, True) == [7, 3]  # across the wrap 0's neighbour 7 is higher: 0 is no peak
+    assert yaw_peaks(s, 3, False) == [7, 0, 3]  # on an open range 0 and 7 are far apart
+
+
+def test_refine_yaws_refines_each_yaw_peak_of_the_place(scene, caffe_weights):
+    """With several yaws per place, every grid yaw of the peak's place is scored and its best yaw peaks are
+    refined: the answer is the best of those cells (scored pose by pose here), never below one yaw's."""
+    space = SearchSpace((-0.12, 0.12), (-0.12, 0.12), 0.03, (0, 2 * math.pi), math.radians(30))
+    args = (scene.image, scene.camera, scene.table, scene.resting, space)
+    fine = dict(refine_xy_m=0.01, refine_yaw_rad=math.radians(10), search="exhaustive", cpu_threads=1, top_k=1)
+    one = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(**fine)).estimate(*args)
+    e = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(refine_yaws=3, **fine))
+    many = e.estimate(*args)
+    (peak,) = many.info["refine"]["peaks"]
+    assert len(peak["yaws_deg"]) >= 2 and many.score >= one.score - 1e-12
+    f = one.info["refine"]["from"]  # the place's grid best, refined first
+    assert peak["yaws_deg"][0] == pytest.approx(f["yaw_deg"])
+    yaws = space.axes()[2]
+    place = (np.full(len(yaws), f["x_m"]), np.full(len(yaws), f["y_m"]), yaws)
+    at_place = e.score(scene.image, scene.camera, scene.table, scene.resting, *place)
+    first = int(np.argmin(np.abs(yaws - math.radians(f["yaw_deg"]))))
+    chosen = yaw_peaks(at_place, 3, True, first)
+    assert [round(math.degrees(yaws[i]), 6) for i in chosen] == [round(v, 6) for v in peak["yaws_deg"]]
+    best = -np.inf
+    for i in chosen:
+        cell = cell_space(space, f["x_m"], f["y_m"], float(yaws[i]), fine["refine_xy_m"], fine["refine_yaw_rad"])
+        best = max(best, e.score(scene.image, scene.camera, scene.table, scene.resting, *cell.candidates()).max())
+    assert abs(best - many.score) < 1e-9

@@ -8,7 +8,7 @@ import time
 
 import numpy as np
 
-from ..peaks import SEPARATION_STEPS, distinct_peaks
+from ..peaks import SEPARATION_STEPS, distinct_peaks, yaw_peaks
 from ..refine import cell_space
 from ..search_space import FULL_CIRCLE, SearchSpace
 from . import exhaustive, pruned
@@ -75,21 +75,47 @@ def probe(service: ScoringService, space: SearchSpace, pose: tuple[float, float,
     return {"x_m": bx, "y_m": by, "yaw_rad": byaw, "score": score, "candidates": len(cell), "at": [x, y, yaw]}
 
 
+def place_yaws(service: ScoringService, space: SearchSpace, place: tuple, m: int) -> list[tuple]:
+    """Grid poses (x_m, y_m, yaw_rad, score) to refine at the place of grid pose `place`: the pose itself,
+    then up to m - 1 more yaw peaks there (perch_warp.peaks.yaw_peaks over every grid yaw of the place,
+    scored on a quiet service: on the pruned grid most of a place's yaws were never scored)."""
+    if m <= 1:
+        return [place]
+    x, y, yaw0, _ = place
+    yaws = space.axes()[2]
+    scores = service.quiet().score((np.full(len(yaws), x), np.full(len(yaws), y), yaws))
+    first = int(np.argmin(np.abs(yaws - yaw0)))
+    idx = yaw_peaks(scores, m, space.full_circle, first)
+    return [place, *((x, y, float(yaws[i]), float(scores[i])) for i in idx[1:])]
+
+
+def refine_place(service: ScoringService, space: SearchSpace, place: tuple, grid_search: str):
+    """The best of `refine` over place_yaws(place): (refined pose, that refinement's info with
+    "yaws_deg": the grid yaws refined at this place)."""
+    best = None
+    poses = place_yaws(service, space, place, service.config.refine_yaws)
+    for pose in poses:
+        out, info = refine(service, space, [pose], grid_search)
+        if best is None or out[0][3] > best[0][3]:  # ties to the place's own grid best
+            best = (out[0], info)
+    return best[0], {**best[1], "yaws_deg": [math.degrees(p[2]) for p in poses]}
+
+
 def refine_peaks(service: ScoringService, space: SearchSpace, top: list, grid_search: str):
-    """`refine` on each of the grid's best `refine_peaks` distinct peaks (perch_warp.peaks: top holds the
-    best candidate of each of the best locations; peaks are locations apart); the best refined pose
-    first, then the other peaks' refined poses, then the runners-up. With one peak, `refine` itself.
-    Returns (top, info); info["peaks"] lists each peak."""
+    """`refine_place` on each of the grid's best `refine_peaks` distinct peaks (perch_warp.peaks: top holds
+    the best candidate of each of the best locations; peaks are locations apart); the best refined pose
+    first, then the other peaks' refined poses, then the runners-up. With one peak and one yaw, `refine`
+    itself. Returns (top, info); info["peaks"] lists each peak."""
     cfg = service.config
-    if cfg.refine_peaks <= 1:
+    if cfg.refine_peaks <= 1 and cfg.refine_yaws <= 1:
         return refine(service, space, top, grid_search)
     idx = distinct_peaks(top, cfg.refine_peaks, SEPARATION_STEPS * space.xy_step_m)
-    refined = []
-    for i in idx:
-        out, info = refine(service, space, [top[i]], grid_search)
-        refined.append((out[0], info))
+    refined = [refine_place(service, space, top[i], grid_search) for i in idx]
     order = sorted(range(len(refined)), key=lambda n: -refined[n][0][3])  # stable: ties to the better grid peak
-    peaks = [{"from": i["from"], "x_m": c[0], "y_m": c[1], "yaw_rad": c[2], "score": c[3]} for c, i in refined]
+    peaks = [
+        {"from": i["from"], "yaws_deg": i["yaws_deg"], "x_m": c[0], "y_m": c[1], "yaw_rad": c[2], "score": c[3]}
+        for c, i in refined
+    ]
     best_info = {**refined[order[0]][1], "peaks": peaks}
     seen = {tuple(top[i][:3]) for i in idx}
     return [*(refined[n][0] for n in order), *(c for c in top if tuple(c[:3]) not in seen)], best_info
