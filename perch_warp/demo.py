@@ -24,6 +24,7 @@ from .errors import PerchError
 from .mesh import ObjectMesh
 from .options import add_method_arguments, build_engine
 from .report import conv_line, log, renderer_line, search_summary, timing_line, write_json_atomic
+from .resting import down_to_table
 from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera
 
@@ -270,25 +271,28 @@ def demo_scene(
     yaw_step_deg: float = 15.0,
     half_range_m: float = 0.1,
     device: str = "cpu",
+    target_down: np.ndarray | None = None,
 ) -> DemoScene:
     """The demo's scene: box target at a random (x, y, yaw), two distractors, and a search square
-    centred on the table origin (where the camera looks), not on the target."""
+    centred on the table origin (where the camera looks), not on the target. `target_down` (model
+    frame): the box lies on the face whose outward normal this is (default: upright, model -z down)."""
     rng = np.random.default_rng(seed)
     f = 0.95 * width
     camera = Camera(np.array([[f, 0, (width - 1) / 2], [0, f, (height - 1) / 2], [0, 0, 1]]), width, height)
     table = look_at_table(0.6, 50.0, float(rng.uniform(-25, 25)))
     target = textured_box((0.11, 0.075, 0.05), label_texture(rng), "demo box")
-    resting = RestingPose.upright(target.vertices_m)
+    R_rest = None if target_down is None else down_to_table(target_down)
+    resting = RestingPose.upright(target.vertices_m, R_rest)
     gx, gy = rng.uniform(-0.06, 0.06, 2)
     gyaw = float(rng.uniform(0, 2 * math.pi))
     scene = []
 
-    def place(mesh: ObjectMesh, x: float, y: float, yaw: float) -> None:
-        rp = RestingPose.upright(mesh.vertices_m)
+    def place(mesh: ObjectMesh, x: float, y: float, yaw: float, rp: RestingPose | None = None) -> None:
+        rp = rp or RestingPose.upright(mesh.vertices_m)
         R, t = model_to_camera(table, rp, x, y, yaw)
         scene.append(Placed(mesh, R[0], t[0]))
 
-    place(target, gx, gy, gyaw)
+    place(target, gx, gy, gyaw, resting)
     # Distractors on the far side, so they occlude little but compete in appearance.
     place(textured_box((0.07, 0.07, 0.12), label_texture(rng), "distractor box"), gx - 0.15, gy + 0.12, 0.6)
     place(striped_cylinder(0.035, 0.11, rng), gx + 0.14, gy + 0.13, 0.0)

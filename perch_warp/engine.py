@@ -13,6 +13,7 @@ refinement (search.refine), and assembles the Result.
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 
 import numpy as np
 import warp as wp
@@ -26,9 +27,11 @@ from .image import check_rgb
 from .mesh import ObjectMesh
 from .peaks import top_location_candidates
 from .render import BoxProjector, MeshRenderer, auto_renderer
-from .result import Candidate, Result
+from .resting import Rest
+from .result import Candidate, RestingChoice, Result
 from .score import FeatureScorer, auto_conv
 from .score_terms import parse_score
+from .search import rests as over_rests
 from .search.base import Outcome, top_indices
 from .search.refine import probe as probe_cell
 from .search.refine import refine_peaks
@@ -123,24 +126,26 @@ class Engine:
         image_rgb: np.ndarray,
         camera: Camera,
         table: Table,
-        resting: RestingPose,
+        resting: RestingPose | Sequence[Rest],
         space: SearchSpace,
         progress: bool = False,
         probe: tuple[float, float, float] | None = None,
+        probe_resting: RestingPose | None = None,
     ) -> Result:
         """Best (x, y, yaw) of the object in the photo; see the module doc for the stages.
 
-        `probe` (x_m, y_m, yaw_rad, table frame), for analysis only: after the search, the best pose
-        and score within that pose's cell (one grid step either side at the refinement's resolution,
-        not cut to the space) on the same photo, in info["probe"]; it never changes the answer."""
+        `resting`: one RestingPose, or several resting poses (perch_warp.resting.Rest, e.g. the mesh's
+        stable poses) searched together (search/rests.py): the best (pose, x, y, yaw), the winner in
+        Result.resting. `probe` (x_m, y_m, yaw_rad, table frame), for analysis only: after the search,
+        the best pose and score within that pose's cell (one grid step either side at the refinement's
+        resolution, not cut to the space) on the same photo, under `probe_resting` (default: the
+        winning resting pose), in info["probe"]; it never changes the answer."""
+        if not isinstance(resting, RestingPose):
+            return self._estimate_rests(image_rgb, camera, table, list(resting), space, progress, probe, probe_resting)
         timings: dict[str, float] = {}
         image_rgb, camera = self._scaled(image_rgb, camera)
         renderer_info = self._pick_renderer(camera, table, resting, space)
-        bar = None
-        if progress:
-            from tqdm import tqdm
-
-            bar = tqdm(total=0, unit="pose", desc=f"search on {self.device}", leave=False)
+        bar = _bar(progress, f"search on {self.device}")
         t_start = time.perf_counter()
         try:
             service = self._service(image_rgb, camera, table, resting, timings, bar)
@@ -177,10 +182,13 @@ class Engine:
         return out, top[: self.config.top_k]
 
     def _result(self, table, resting, space: SearchSpace, out: Outcome, top: list, timings, renderer_info) -> Result:
-        cfg = self.config
         tx, ty, tyaw, _ = np.array(top).T  # table frame: metres, metres, radians
         R, tr = model_to_camera(table, resting, tx, ty, tyaw)
         cands = [Candidate(*c, pose_matrix(R[n], tr[n])) for n, c in enumerate(top)]
+        return self._result_of(cands, len(space), out, timings, renderer_info, space)
+
+    def _result_of(self, cands: list, n_candidates: int, out: Outcome, timings, renderer_info, space) -> Result:
+        cfg = self.config
         info = {
             "weights": self.weights.source,
             "stride_px": cfg.stride,
@@ -203,7 +211,50 @@ class Engine:
             **out.extra,
         }
         n_scored = int(np.isfinite(out.scores).sum())
-        return Result(cands[0], cands, len(space), n_scored, timings, self.device, info)
+        return Result(cands[0], cands, n_candidates, n_scored, timings, self.device, info)
+
+    def _estimate_rests(self, image_rgb, camera, table, rests: list[Rest], space, progress, probe, probe_resting):
+        """`estimate` over several resting poses (search/rests.py), on one scoring service."""
+        if not rests:
+            raise PerchError("no resting pose to search (an empty list)")
+        timings: dict[str, float] = {}
+        image_rgb, camera = self._scaled(image_rgb, camera)
+        # The renderer is chosen from the first (most probable) pose's boxes: it changes speed, not images.
+        renderer_info = self._pick_renderer(camera, table, rests[0].pose, space)
+        bar = _bar(progress, f"search on {self.device}")
+        t_start = time.perf_counter()
+        try:
+            first = self._service(image_rgb, camera, table, rests[0].pose, timings, bar)
+            services = [over_rests.with_rest(first, r.pose) for r in rests]
+            outs = over_rests.search_all(services, space, self.search, [r.label for r in rests])
+            top = over_rests.joint_top(outs, space, self.config)
+            if not top:
+                raise PerchError(f"the search grid projects outside the image ({space.describe()})")
+            extra: dict = {}
+            if self.config.refine:
+                top, extra["refine"] = over_rests.refine_joint(services, space, top, self.search, self.config)
+            top = top[: self.config.top_k]
+            wall_s = time.perf_counter() - t_start
+            if probe is not None:  # a diagnostic: timed apart, not part of the search's total
+                t_probe = time.perf_counter()
+                service = over_rests.with_rest(first, probe_resting or rests[top[0][4]].pose)
+                extra["probe"] = probe_cell(service, space, probe, self.search)
+                timings["probe"] = time.perf_counter() - t_probe
+        finally:
+            if bar is not None:
+                bar.close()
+        timings["total"] = wall_s
+        evaluated, stats, search_extra = over_rests.combined_extra(outs, self.search)
+        out = Outcome(np.concatenate([o.scores for o in outs]), evaluated, stats, extra={**search_extra, **extra})
+        cands = []
+        for x, y, yaw, sc, p in top:
+            R, tr = model_to_camera(table, rests[p].pose, x, y, yaw)
+            cands.append(Candidate(x, y, yaw, sc, pose_matrix(R[0], tr[0]), rests[p].label))
+        result = self._result_of(cands, len(space) * len(rests), out, timings, renderer_info, space)
+        p = top[0][4]
+        best = over_rests.per_rest_best(outs)
+        result.resting = RestingChoice(rests[p], p, rests, best, [o.evaluated for o in outs])
+        return result
 
     def score(
         self,
@@ -257,6 +308,15 @@ class Engine:
         if self.config.image_scale != 1.0:
             return _rescale(check_rgb(image_rgb), camera, self.config.image_scale)
         return image_rgb, camera
+
+
+def _bar(progress: bool, desc: str):
+    """A progress bar over candidate poses (its total grows as searches add theirs), or None."""
+    if not progress:
+        return None
+    from tqdm import tqdm
+
+    return tqdm(total=0, unit="pose", desc=desc, leave=False)
 
 
 def _rescale(image_rgb: np.ndarray, camera: Camera, factor: float) -> tuple[np.ndarray, Camera]:

@@ -23,6 +23,7 @@ from .outputs import check_output_file
 from .overlay import TRUTH_COLOR, caption, mask_contour, overlay_mask, overlay_rendering
 from .pose_error import add, adi
 from .report import conv_line, log, renderer_line, search_summary, timing_line, write_json_atomic
+from .resting import DEFAULT_ROLL_STEP_DEG, REST_MODES, Rest, stable_rests, truth_rest, upright_rest
 from .table import RestingPose, Table, decompose_on_table, pose_matrix
 
 
@@ -38,6 +39,7 @@ def run(args: argparse.Namespace) -> int:
 
     # Everything is checked before any work: options, output paths, then the inputs from the cheapest.
     engine_config_from_args(args)
+    args.rest = resolve_rest(args)
     if args.out:
         check_output_file(args.out, "--out")
     if args.overlay:
@@ -47,30 +49,30 @@ def run(args: argparse.Namespace) -> int:
     entry = _camera_entry(args, image_id)
     camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
     table = Table.from_entry(entry, source=args.camera)
-    truth, resting = _read_truth(args, image_id, table)
+    truth, truth_resting = _read_truth(args, image_id, table)
     mesh = load_mesh(args.mesh, args.mesh_units, untextured=args.untextured)
-    if truth is None:
-        resting = RestingPose.upright(mesh.vertices_m, lift_m=args.lift_mm / 1000.0)
     space = search_space_from_args(args, camera, table)
+    rests = _rests(args, mesh, truth_resting)
     image = load_rgb(args.image)
     if image.shape[:2] != (height, width):  # the file changed since its header was read
         raise PerchError(f"image {args.image} changed while being read")
     if not args.quiet:
         log(f"mesh: {mesh.source}, units {mesh.units_note}, {len(mesh.faces)} faces")
         log(f"search: {space.describe()}")
+        log(f"resting poses ({args.rest}): {len(rests)}: " + "; ".join(r.label for r in rests))
     engine = build_engine(args, mesh, args.quiet)
-    result = engine.estimate(image, camera, table, resting, space, progress=not args.quiet)
-    out = {
-        "image": str(args.image),
-        "mesh": str(args.mesh),
-        "resting": {"R_rest": resting.R_rest.reshape(-1).tolist(), "z_m": resting.z_m},
-    }
+    # One resting pose goes the single-pose way (bit for bit today's search); several, search/rests.py.
+    searched = rests[0].pose if len(rests) == 1 else rests
+    result = engine.estimate(image, camera, table, searched, space, progress=not args.quiet)
+    won = rests[0] if result.resting is None else result.resting.won
+    out = {"image": str(args.image), "mesh": str(args.mesh), "rest": args.rest, "resting": won.to_dict()}
     out.update(result.to_dict())
     b = result.best
     print(
         f"pose: x = {b.x_m:+.4f} m, y = {b.y_m:+.4f} m, yaw = {math.degrees(b.yaw_rad):.1f} deg (table frame), "
         f"score {b.score:.4f}"
     )
+    print(rest_line(won, len(rests), args.rest))
     print(timing_line(result))
     print(search_summary(result))
     print(renderer_line(result))
@@ -84,6 +86,33 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+def rest_line(won: Rest, n: int, mode: str) -> str:
+    """The resting pose of the answer: which face is down (and roll), the model origin's height."""
+    how = f"best of {n} {mode} resting poses" if n > 1 else f"--rest {mode}"
+    return f"resting: {won.label}, model origin {won.pose.z_m:.4f} m above the table ({how})"
+
+
+def _rests(args: argparse.Namespace, mesh, truth_resting: RestingPose | None) -> list[Rest]:
+    """The resting poses to search (--rest): the mesh's stable ones, upright, or the ground truth's."""
+    lift_m = args.lift_mm / 1000.0
+    if args.rest == "truth":
+        return [truth_rest(truth_resting)]
+    if args.rest == "upright":
+        return [upright_rest(mesh.vertices_m, lift_m)]
+    return stable_rests(mesh.vertices_m, mesh.faces, args.roll_step, lift_m=lift_m)
+
+
+def resolve_rest(args: argparse.Namespace) -> str:
+    """--rest as given, else truth with --truth (the thesis's protocol, as before) and stable without;
+    refused (one line) when truth is asked without a ground truth."""
+    rest = args.rest or ("truth" if args.truth else "stable")
+    if rest == "truth" and not (args.truth and args.obj_id is not None):
+        raise PerchError("--rest truth needs --truth scene_gt.json and --obj-id N (the ground truth's resting pose)")
+    if not (math.isfinite(args.roll_step) and 0 < args.roll_step <= 360):
+        raise PerchError(f"--roll-step must be in (0, 360] degrees, got {args.roll_step}")
+    return rest
+
+
 def _camera_entry(args: argparse.Namespace, image_id: int | None) -> dict:
     """The camera entry for the image: by --image-id, else by the image name's number, else the file's only one."""
     try:
@@ -95,7 +124,7 @@ def _camera_entry(args: argparse.Namespace, image_id: int | None) -> dict:
 
 
 def _read_truth(args: argparse.Namespace, image_id: int | None, table: Table):
-    """(R_gt, t_gt, x, y, yaw) and the resting pose from --truth/--obj-id, or (None, None) without them."""
+    """(R_gt, t_gt, x, y, yaw) and the ground truth's resting pose from --truth/--obj-id, or (None, None)."""
     if not (args.truth or args.obj_id is not None):
         return None, None
     if not args.truth:
@@ -134,7 +163,8 @@ def _write_overlay(path, engine, image, camera, b, truth, out: dict) -> None:
     pic = overlay_rendering(image, rgb, mask)
     lines = [
         f"estimate (magenta): x {b.x_m:+.3f} m  y {b.y_m:+.3f} m  "
-        f"yaw {math.degrees(b.yaw_rad):.0f} deg  score {b.score:.3f}"
+        f"yaw {math.degrees(b.yaw_rad):.0f} deg  score {b.score:.3f}",
+        f"resting: {out['resting']['label']}, {out['resting']['z_m']:.3f} m high",
     ]
     if truth is not None:
         _, gmask = engine.render(camera, pose_matrix(truth[0], truth[1]))
@@ -171,10 +201,25 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument(
         "--truth",
         default=None,
-        help="BOP scene_gt.json: take height, roll and pitch from the ground truth of --obj-id (thesis protocol) "
-        "and report the estimate's error",
+        help="BOP scene_gt.json: report the estimate's error against the ground truth of --obj-id, and "
+        "(unless --rest says otherwise) take height, roll and pitch from it (thesis protocol)",
     )
     p.add_argument("--obj-id", type=int, default=None, help="object id in --truth")
+    p.add_argument(
+        "--rest",
+        choices=REST_MODES,
+        default=None,
+        help="how the object rests: stable (every stable pose of the mesh, searched together; about as many "
+        "times the cost), upright (model +z up), truth (from --truth; the thesis's protocol). "
+        "Default: truth with --truth, else stable",
+    )
+    p.add_argument(
+        "--roll-step",
+        type=float,
+        default=DEFAULT_ROLL_STEP_DEG,
+        help=f"--rest stable: roll step (deg) about the axis of an object lying on a curved side, e.g. a can "
+        f"(default: {DEFAULT_ROLL_STEP_DEG:g})",
+    )
     add_search_arguments(p)
     add_method_arguments(p)
     g = p.add_argument_group("output")

@@ -47,13 +47,17 @@ def top_location_candidates(flat: np.ndarray, scores: np.ndarray, n_yaw: int, m:
     return pos[np.lexsort((best, -scores[pos]))[:m]]
 
 
-def kth_location_score(flat: np.ndarray, scores: np.ndarray, n_yaw: int, k: int) -> float:
-    """The k-th best location's best score among these candidates; -inf with fewer than k locations."""
+def kth_location_score(
+    flat: np.ndarray, scores: np.ndarray, n_yaw: int, k: int, prior: np.ndarray | None = None
+) -> float:
+    """The k-th best location's best score among these candidates; -inf with fewer than k locations.
+    `prior` (one value per location of the space, -inf where none): each location's best score from
+    other searches of the same space (other resting poses), merged in."""
     ok = np.isfinite(scores)
-    if not ok.any():
+    if prior is None and not ok.any():
         return -np.inf
     loc = np.asarray(flat, dtype=np.int64)[ok] // n_yaw
-    best = np.full(int(loc.max()) + 1, -np.inf)
+    best = np.full(int(loc.max()) + 1, -np.inf) if prior is None else prior.copy()
     np.maximum.at(best, loc, scores[ok])
     best = best[np.isfinite(best)]
     n = len(best)

@@ -15,9 +15,10 @@ class Candidate:
     yaw_rad: float
     score: float
     T_m2c: np.ndarray  # 4x4, model -> camera, metres
+    rest: str | None = None  # the resting pose's label, in a search over several (else None)
 
     def to_dict(self) -> dict:
-        return {
+        out = {
             "x_m": self.x_m,
             "y_m": self.y_m,
             "yaw_deg": math.degrees(self.yaw_rad),
@@ -25,6 +26,43 @@ class Candidate:
             "score": self.score,
             "cam_R_m2c": self.T_m2c[:3, :3].reshape(-1).tolist(),
             "cam_t_m2c_mm": (self.T_m2c[:3, 3] * 1000.0).tolist(),
+        }
+        if self.rest is not None:
+            out["rest"] = self.rest
+        return out
+
+
+@dataclass
+class RestingChoice:
+    """Which resting pose won a search over several (perch_warp.resting.Rest), and each pose's best.
+
+    `won`: the winning Rest (label: the face down, and roll; pose.z_m: the model origin's height above
+    the table top, metres); `index`: its position in `rests`; `best_scores[i]`: rests[i]'s best grid
+    score (-inf where it showed nothing); `evaluated[i]`: candidates scored under rests[i]."""
+
+    won: object  # perch_warp.resting.Rest
+    index: int
+    rests: list
+    best_scores: list[float]
+    evaluated: list[int]
+
+    @property
+    def label(self) -> str:
+        return self.won.label
+
+    @property
+    def z_m(self) -> float:
+        return self.won.pose.z_m
+
+    def to_dict(self) -> dict:
+        return {
+            **self.won.to_dict(),
+            "index": self.index,
+            "searched": [
+                {"label": r.label, "z_m": r.pose.z_m, "best_grid_score": s if math.isfinite(s) else None}
+                | {"evaluated": n}
+                for r, s, n in zip(self.rests, self.best_scores, self.evaluated, strict=True)
+            ],
         }
 
 
@@ -39,6 +77,8 @@ class Result:
     timings_s: dict[str, float]
     device: str
     info: dict = field(default_factory=dict)
+    # The resting pose that won, in a search over several (Engine.estimate given a list); else None.
+    resting: RestingChoice | None = None
 
     @property
     def x_m(self) -> float:
@@ -73,4 +113,5 @@ class Result:
             "timings_s": self.timings_s,
             "device": self.device,
             **self.info,
+            **({"resting": self.resting.to_dict()} if self.resting is not None else {}),
         }

@@ -76,6 +76,8 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
                 "3",
                 "--renderer",
                 "bvh",
+                "--rest",
+                "upright",  # as the first run's ground truth: without --truth the default is every stable pose
             )
         )
         == 0
@@ -86,6 +88,22 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     assert [[c[k] for k in keys] for c in res2["top_k"]] == [[c[k] for k in keys] for c in res["top_k"]]
     assert res["bounded"] == res2["n_candidates"] == res2["evaluated"]
     assert f"search: exhaustive, scored {res2['n_candidates']:,} of" in capsys.readouterr().out
+
+
+def test_rest_stable_names_the_face_down_and_its_height(scene_dir, caffe_weights, tmp_path, capsys):
+    d, sc = scene_dir
+    out = tmp_path / "r.json"
+    gx, gy, _ = sc.truth_xy_yaw
+    x, y = round(gx, 2), round(gy, 2)
+    space = ["--x-range", f"{x - 0.01}", f"{x + 0.01}", "--y-range", f"{y - 0.01}", f"{y + 0.01}", "--yaw-step", "30"]
+    args = _args(d, *space, "--weights", "caffe", "--out", str(out), "--refine-yaw", "5", "--refine-xy", "0.005")
+    assert main(args) == 0  # no --truth, no --rest: every stable pose of the box
+    res = json.loads(out.read_text())
+    assert res["rest"] == "stable" and res["resting"]["label"] == "model -z down"
+    assert res["resting"]["z_m"] == pytest.approx(0.025) and len(res["resting"]["searched"]) == 6
+    assert res["pose"]["rest"] == "model -z down" and res["n_candidates"] == 6 * 3 * 3 * 12
+    stdout = capsys.readouterr().out
+    assert "resting: model -z down, model origin 0.0250 m above the table (best of 6 stable resting poses)" in stdout
 
 
 def _error(capsys, args) -> str:
@@ -135,6 +153,8 @@ def test_bad_inputs_give_one_line_errors(scene_dir, random_weights, tmp_path, ca
     (tmp_path / "plain.obj").write_text("v 0 0 0\nv 0.1 0 0\nv 0 0.1 0\nf 1 2 3\n")
     assert "no texture" in _error(capsys, _args(d, *w, mesh=tmp_path / "plain.obj"))
 
+    assert "--rest truth needs --truth" in _error(capsys, _args(d, *w, *search, "--rest", "truth"))
+    assert "--roll-step must be in (0, 360]" in _error(capsys, _args(d, *w, *search, "--roll-step", "0"))
     assert "alpha" in _error(capsys, _args(d, *w, *search, "--alpha", "0"))
     assert "alpha" in _error(capsys, _args(d, *w, *search, "--alpha", "1.5"))
     assert "empty" in _error(capsys, _args(d, *w, "--x-range", "0.1", "-0.1", "--y-range", "0", "0.1"))

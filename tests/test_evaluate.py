@@ -438,3 +438,26 @@ def test_kill_9_mid_run_then_resume_gives_the_full_result(tmp_path):
     assert len(est.calls) == 5 - n_before
     assert resumed["pooled"]["auc"] == pytest.approx(full["pooled"]["auc"])
     assert len(_journal(out)) == 5 and not list(out.glob(".*.tmp"))
+
+
+def test_rest_stable_reaches_the_estimator_and_is_recorded(tmp_path, monkeypatch, capsys):
+    root = write_tiny_dataset(tmp_path / "ds")
+    est, seen = FakeEstimator(), []
+
+    def make(*a, **k):
+        seen.append(a[4:])  # (rest, roll step) after (paths, weights, device, config)
+        return est
+
+    monkeypatch.setattr(command, "EngineEstimator", make)
+    p = argparse.ArgumentParser()
+    command.add_arguments(p)
+    base = ["--dataset", str(root), "--objects", "1", "--no-plots", "--xy-step", "0.02"]
+    stable = ["--rest", "stable", "--roll-step", "45"]
+    assert command.run(p.parse_args([*base, "--out", str(tmp_path / "a"), *stable])) == 0
+    assert seen == [("stable", 45.0)]
+    options = json.loads((tmp_path / "a" / "eval_config.json").read_text())["options"]
+    assert (options["rest"], options["roll_step"]) == ("stable", 45.0)
+    # The thesis's protocol stays the default, recorded as before --rest existed (old OUTDIRs resume).
+    assert command.run(p.parse_args([*base, "--out", str(tmp_path / "b")])) == 0
+    assert seen[-1] == ("truth", 30.0)
+    assert "rest" not in json.loads((tmp_path / "b" / "eval_config.json").read_text())["options"]

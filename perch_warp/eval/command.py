@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import argparse
+import math
 import shlex
 import sys
 from pathlib import Path
@@ -11,6 +12,7 @@ from ..camera import Camera
 from ..errors import PerchError
 from ..options import add_method_arguments, add_search_arguments, engine_config_from_args, search_space_from_args
 from ..outputs import check_output_dir
+from ..resting import DEFAULT_ROLL_STEP_DEG
 from ..table import RestingPose, Table
 from .journal import NOT_SEARCH_OPTIONS, RESULTS_FILE
 from .protocol import EngineEstimator, Estimator, evaluate
@@ -56,6 +58,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--gallery", type=int, default=4, metavar="K", help="best and worst K cases in gallery.png (0: none)"
     )
     o.add_argument("--no-plots", action="store_true", help="write no PNG plots")
+    r = parser.add_argument_group("resting pose")
+    r.add_argument(
+        "--rest",
+        choices=("truth", "stable"),
+        default="truth",
+        help="truth: height, roll and pitch from the ground truth (the thesis's protocol, default); stable: "
+        "every stable pose of the mesh searched together, as a user without ground truth",
+    )
+    r.add_argument(
+        "--roll-step",
+        type=float,
+        default=DEFAULT_ROLL_STEP_DEG,
+        help=f"--rest stable: roll step (deg) on a curved side (default: {DEFAULT_ROLL_STEP_DEG:g})",
+    )
     add_method_arguments(parser)
     add_search_arguments(parser)
 
@@ -69,14 +85,19 @@ def run(args: argparse.Namespace) -> int:
     if args.max_images is not None and args.max_images < 1:
         raise PerchError(f"--max-images must be at least 1, got {args.max_images}")
     config = engine_config_from_args(args)  # validates the method options before any work
+    if not (math.isfinite(args.roll_step) and 0 < args.roll_step <= 360):
+        raise PerchError(f"--roll-step must be in (0, 360] degrees, got {args.roll_step}")
     options = {k: v for k, v in sorted(vars(args).items()) if k not in NOT_SEARCH_OPTIONS and k not in _EVAL_ARGS}
+    if args.rest == "truth":  # as before --rest existed, so that earlier OUTDIRs still resume
+        options.pop("rest")
+        options.pop("roll_step")
 
     def space_fn(camera: Camera, table: Table, resting: RestingPose):
         # The region depends on the view and the table only: never on the ground truth.
         return search_space_from_args(args, camera, table)
 
     def make_estimator(model_paths: dict[int, Path]) -> Estimator:
-        return EngineEstimator(model_paths, args.weights, args.device, config)
+        return EngineEstimator(model_paths, args.weights, args.device, config, args.rest, args.roll_step)
 
     command = shlex.join(["python", "-m", "perch_warp", *sys.argv[1:]])
     try:

@@ -98,6 +98,7 @@ def compute_errors(selection: Selection, done: dict, tables: TableCache, geometr
                     "n_candidates": d.details.get("n_candidates"),
                     "n_evaluated": d.details.get("n_evaluated"),
                     **_diagnostics(d),
+                    "rest": d.details.get("rest"),  # the resting pose that won under --rest stable
                     "R_est": d.R,
                     "t_est_m": d.t_m,
                     "R_gt": t.R_gt,
@@ -150,6 +151,7 @@ _PER_TARGET_COLUMNS = [
     "miss",
     "est_points",
     "est_edge_share",
+    "rest",
 ]
 
 

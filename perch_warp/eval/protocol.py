@@ -22,6 +22,7 @@ from ..image import load_rgb
 from ..mesh import load_mesh
 from ..options import SearchTooLarge
 from ..outputs import atomic_write_text, check_output_dir, folder_lock
+from ..resting import DEFAULT_ROLL_STEP_DEG, stable_rests
 from ..search_space import SearchSpace
 from ..table import RestingPose, Table, decompose_on_table
 from .journal import (
@@ -65,14 +66,25 @@ class EngineEstimator:
     """The real search: one `Engine` per object, built on first use (outside the timed call)."""
 
     def __init__(
-        self, model_paths: dict[int, Path], weights_spec: str = "auto", device: str | None = None, config=None
+        self,
+        model_paths: dict[int, Path],
+        weights_spec: str = "auto",
+        device: str | None = None,
+        config=None,
+        rest: str = "truth",
+        roll_step_deg: float = DEFAULT_ROLL_STEP_DEG,
     ):
         self.model_paths = model_paths
         self.weights_spec = weights_spec
         self.device = device
         self.config = config  # EngineConfig, None: its defaults
+        # "truth": the ground truth's height, roll and pitch (the thesis's protocol); "stable": every
+        # stable pose of the mesh (perch_warp.resting), searched together, as a user without ground truth.
+        self.rest = rest
+        self.roll_step_deg = roll_step_deg
         self._weights = None
         self._engines: dict[int, object] = {}
+        self._rests: dict[int, list] = {}
 
     def prepare(self, obj_id: int) -> None:
         if obj_id in self._engines:
@@ -86,13 +98,19 @@ class EngineEstimator:
             self._weights = load_feature_weights(self.weights_spec)
         mesh = load_mesh(self.model_paths[obj_id])
         self._engines[obj_id] = Engine(mesh, self._weights, self.device, self.config)
+        if self.rest == "stable":
+            self._rests[obj_id] = stable_rests(mesh.vertices_m, mesh.faces, self.roll_step_deg)
 
     def __call__(self, target: Target, image_rgb, camera, table, resting, space) -> Estimate:
         self.prepare(target.obj_id)
         engine = self._engines[target.obj_id]
         # Diagnostics only: the ground truth's cell is scored after the search, on the same photo.
         _, xg, yg, yawg = decompose_on_table(table, target.R_gt, target.t_gt_m)
-        res = engine.estimate(image_rgb, camera, table, resting, space, progress=False, probe=(xg, yg, yawg))
+        # Under --rest stable the probe scores the truth's cell under the truth's own resting pose, so a
+        # "search miss" there also means that pose is not among the stable ones searched.
+        searched = self._rests[target.obj_id] if self.rest == "stable" else resting
+        probe = {"probe": (xg, yg, yawg), "probe_resting": resting}
+        res = engine.estimate(image_rgb, camera, table, searched, space, progress=False, **probe)
         T = np.asarray(res.T_m2c, dtype=np.float64)
         details = {
             "n_candidates": int(res.n_candidates),
@@ -104,6 +122,9 @@ class EngineEstimator:
         if "refine" in res.info:  # where the refinement started (the grid's best) and how far it went
             details["refine"] = res.info["refine"]
         details["probe"] = res.info["probe"]
+        if res.resting is not None:
+            details["rest"] = res.resting.label
+            details["rest_z_m"] = res.resting.z_m
         t = time.perf_counter()
         details["silhouette"] = silhouette_stats(engine, camera, T)
         diagnostics_s = res.timings["probe"] + time.perf_counter() - t

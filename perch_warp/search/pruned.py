@@ -29,8 +29,33 @@ class BestFirst:
     bounded: int
 
 
-def run(service: ScoringService, space: SearchSpace) -> Outcome:
-    """Scores (-inf where not scored) in the space's order and what the search did."""
+@dataclass
+class Incumbent:
+    """The best scores of earlier searches of the same space under other resting poses
+    (search/rests.py), which a later search must beat: its threshold starts there and stays exact,
+    since the answer is the top-k of all poses together. `top`: the k best candidate scores so far;
+    `location_best`: each location's (x, y) best over yaw and poses, -inf where none (when the search
+    keeps locations: several refined peaks)."""
+
+    top: np.ndarray
+    location_best: np.ndarray
+
+    @classmethod
+    def empty(cls, space: SearchSpace) -> Incumbent:
+        xs, ys, _ = space.axes()
+        return cls(np.empty(0), np.full(len(xs) * len(ys), -np.inf))
+
+    def add(self, out: Outcome, space: SearchSpace, k: int) -> None:
+        """Fold in a search's outcome over `space` (its scores in the space's order or at out.flat)."""
+        flat = np.arange(len(out.scores)) if out.flat is None else out.flat
+        ok = np.isfinite(out.scores)
+        self.top = np.sort(np.concatenate([self.top, out.scores[ok]]))[::-1][:k]
+        np.maximum.at(self.location_best, flat[ok] // len(space.axes()[2]), out.scores[ok])
+
+
+def run(service: ScoringService, space: SearchSpace, prior: Incumbent | None = None) -> Outcome:
+    """Scores (-inf where not scored) in the space's order and what the search did; with `prior`,
+    candidates that cannot beat the earlier resting poses' k-th best are not scored either."""
     stats = SearchStats()
     scores = np.full(len(space), -np.inf)
     k = service.config.pool
@@ -39,8 +64,11 @@ def run(service: ScoringService, space: SearchSpace) -> Outcome:
 
     def kth_best(scored: np.ndarray) -> float:
         if by_location:  # the k-th best location (best over yaw): perch_warp.peaks
-            return kth_location_score(scored, scores[scored], n_yaw, k)
-        return kth_largest(scores[scored], k)
+            loc_prior = None if prior is None else prior.location_best
+            return kth_location_score(scored, scores[scored], n_yaw, k, loc_prior)
+        if prior is None:
+            return kth_largest(scores[scored], k)
+        return kth_largest(np.concatenate([prior.top, scores[scored]]), k)
 
     bf = best_first(service, PoseSource.of_space(space), scores, kth_best, stats)
     extra = {
