@@ -24,7 +24,7 @@ from ..search_space import SearchSpace
 from . import get
 from .base import Outcome, top_indices
 from .pruned import Incumbent
-from .refine import refine
+from .refine import refine_place
 from .scoring import ScoringService, SearchStats
 
 #: a scored pose: (x_m, y_m, yaw_rad, score, index of its resting pose)
@@ -82,13 +82,21 @@ def refine_joint(services: list[ScoringService], space: SearchSpace, top: list[T
     refined = []
     for i in idx:
         p = top[i][4]
-        out, info = refine(services[p], space, [top[i][:4]], search)
-        refined.append(((*out[0], p), info))
+        best, info = refine_place(services[p], space, top[i][:4], search)  # --refine-yaws yaws of the place
+        refined.append(((*best, p), info))
     order = sorted(range(len(refined)), key=lambda m: -refined[m][0][3])  # stable: ties to the better grid peak
     info = dict(refined[order[0]][1])
     if n > 1:
         info["peaks"] = [
-            {"from": i["from"], "x_m": c[0], "y_m": c[1], "yaw_rad": c[2], "score": c[3], "rest": c[4]}
+            {
+                "from": i["from"],
+                "yaws_deg": i["yaws_deg"],
+                "x_m": c[0],
+                "y_m": c[1],
+                "yaw_rad": c[2],
+                "score": c[3],
+                "rest": c[4],
+            }
             for c, i in refined
         ]
     best = [refined[m][0] for m in order]
