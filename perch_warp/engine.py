@@ -19,6 +19,7 @@ import warp as wp
 
 from . import search as searches
 from .camera import Camera
+from .confidence import Confidence, grid_confidence, yaw_differs
 from .config import SEARCHES, EngineConfig
 from .errors import PerchError
 from .features import FeatureWeights
@@ -28,6 +29,7 @@ from .peaks import top_location_candidates
 from .render import BoxProjector, MeshRenderer, auto_renderer
 from .result import Candidate, Result
 from .score import FeatureScorer, auto_conv
+from .score_map import ScoreMap, knowledge, score_map
 from .score_terms import parse_score
 from .search.base import Outcome, top_indices
 from .search.refine import probe as probe_cell
@@ -145,6 +147,7 @@ class Engine:
         try:
             service = self._service(image_rgb, camera, table, resting, timings, bar)
             out, top = self._search(service, space)
+            assessed = self._assess(service, space, out, top[0][:3], resting)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more.
             wall_s = time.perf_counter() - t_start
             if probe is not None:  # a diagnostic: timed apart, not part of the search's total
@@ -155,7 +158,7 @@ class Engine:
             if bar is not None:
                 bar.close()
         timings["total"] = wall_s
-        return self._result(table, resting, space, out, top, timings, renderer_info)
+        return self._result(table, resting, space, out, top, timings, renderer_info, assessed)
 
     def _search(self, service: ScoringService, space: SearchSpace) -> tuple[Outcome, list]:
         """The configured search's outcome and its top-k [(x_m, y_m, yaw_rad, score)], refined."""
@@ -176,7 +179,29 @@ class Engine:
             top, out.extra["refine"] = refine_peaks(service, space, top, self.search)
         return out, top[: self.config.top_k]
 
-    def _result(self, table, resting, space: SearchSpace, out: Outcome, top: list, timings, renderer_info) -> Result:
+    def _assess(self, service: ScoringService, space: SearchSpace, out: Outcome, answer, resting: RestingPose):
+        """(ScoreMap, Confidence) of the answer (x_m, y_m, yaw_rad): perch_warp.score_map and .confidence,
+        timed as one "confidence" stage; after the pruned search, the left-out candidates that could
+        change the margin are scored (on a quiet service: not the search's stages)."""
+        t = time.perf_counter()
+        k = knowledge(out, space, self.search)
+        quiet = service.quiet()
+
+        def score_fn(flat: np.ndarray) -> np.ndarray:
+            return quiet.score(space.at(flat))
+
+        def differs(offsets: np.ndarray) -> np.ndarray:
+            return yaw_differs(self.mesh.vertices_m, resting.R_rest, offsets)
+
+        conf = grid_confidence(k, space, answer, differs, score_fn if out.bounds is not None else None)
+        smap = score_map(k, space)
+        service.lap("confidence", t)
+        return smap, conf
+
+    def _result(
+        self, table, resting, space: SearchSpace, out: Outcome, top: list, timings, renderer_info,
+        assessed: tuple[ScoreMap, Confidence],
+    ) -> Result:  # fmt: skip
         cfg = self.config
         tx, ty, tyaw, _ = np.array(top).T  # table frame: metres, metres, radians
         R, tr = model_to_camera(table, resting, tx, ty, tyaw)
@@ -203,7 +228,8 @@ class Engine:
             **out.extra,
         }
         n_scored = int(np.isfinite(out.scores).sum())
-        return Result(cands[0], cands, len(space), n_scored, timings, self.device, info)
+        smap, conf = assessed
+        return Result(cands[0], cands, len(space), n_scored, timings, self.device, info, conf, smap)
 
     def score(
         self,

@@ -50,7 +50,7 @@ def run(service: ScoringService, space: SearchSpace) -> Outcome:
         "bound_rays": stats.bound_rays,
         "k": k,  # the rank whose score a bound had to reach
     }
-    return Outcome(scores, len(bf.scored), stats, extra=extra)
+    return Outcome(scores, len(bf.scored), stats, extra=extra, bounds=bf.bounds)
 
 
 def _bound_all(service: ScoringService, poses: PoseSource, stats: SearchStats):
