@@ -98,6 +98,20 @@ class ScoreMap:
     def n_unknown(self) -> int:
         return int(np.isnan(self.best).sum())
 
+    def save(self, f) -> None:
+        """Write as a compressed .npz into the binary file f (float32 scores: a picture's precision)."""
+        np.savez_compressed(
+            f, xs_m=self.xs_m, ys_m=self.ys_m, step_m=self.step_m, best=self.best.astype(np.float32),
+            upper=self.upper.astype(np.float32), best_yaw_rad=self.best_yaw_rad.astype(np.float32),
+            why_unknown=np.array(self.why_unknown),
+        )  # fmt: skip
+
+    @classmethod
+    def load(cls, path) -> ScoreMap:
+        with np.load(path) as z:
+            grids = (z[k].astype(np.float64) for k in ("best", "upper", "best_yaw_rad"))
+            return cls(z["xs_m"], z["ys_m"], float(z["step_m"]), *grids, str(z["why_unknown"]))
+
     def peaks(self, n: int, sep_steps: int) -> list[tuple[float, float, float, float]]:
         """Up to n distinct peaks (x_m, y_m, yaw_rad, score), best first: known cells more than
         sep_steps cells apart in x or in y (perch_warp.peaks.distinct_peaks)."""
