@@ -413,6 +413,7 @@ def run(args: argparse.Namespace) -> int:
         f"estimate: x = {b.x_m:+.4f} m, y = {b.y_m:+.4f} m, yaw = {math.degrees(b.yaw_rad):6.1f} deg, "
         f"score {b.score:.3f}"
     )
+    print(result.confidence.line())
     ref = result.info.get("refine")
     print(
         f"error: ADD-S {adds * 100:.2f} cm, yaw {yaw_err:.1f} deg -> {'within' if ok else 'NOT within'} one grid step"
@@ -431,6 +432,6 @@ def run(args: argparse.Namespace) -> int:
     print(
         f"  python -m perch_warp {out}/rgb/000001.png --mesh {out}/models/obj_000001.obj "
         f"--camera {out}/scene_camera.json --x-range -0.1 0.1 --y-range -0.1 0.1 --yaw-step {args.yaw_step:g} "
-        f"--overlay {out}/overlay_cli.png"
+        f"--overlay {out}/overlay_cli.png --heatmap {out}/heatmap.png"
     )
     return 0 if ok else 3

@@ -20,6 +20,7 @@ import warp as wp
 
 from . import search as searches
 from .camera import Camera
+from .confidence import Confidence, grid_confidence, yaw_differs
 from .config import SEARCHES, EngineConfig
 from .errors import PerchError
 from .features import FeatureWeights
@@ -30,6 +31,7 @@ from .render import BoxProjector, MeshRenderer, auto_renderer
 from .resting import Rest
 from .result import Candidate, RestingChoice, Result
 from .score import FeatureScorer, auto_conv
+from .score_map import ScoreMap, knowledge, score_map
 from .score_terms import parse_score
 from .search import rests as over_rests
 from .search.base import Outcome, top_indices
@@ -150,6 +152,7 @@ class Engine:
         try:
             service = self._service(image_rgb, camera, table, resting, timings, bar)
             out, top = self._search(service, space)
+            assessed = self._assess(service, space, out, top[0][:3], resting)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more.
             wall_s = time.perf_counter() - t_start
             if probe is not None:  # a diagnostic: timed apart, not part of the search's total
@@ -160,7 +163,7 @@ class Engine:
             if bar is not None:
                 bar.close()
         timings["total"] = wall_s
-        return self._result(table, resting, space, out, top, timings, renderer_info)
+        return self._result(table, resting, space, out, top, timings, renderer_info, assessed)
 
     def _search(self, service: ScoringService, space: SearchSpace) -> tuple[Outcome, list]:
         """The configured search's outcome and its top-k [(x_m, y_m, yaw_rad, score)], refined."""
@@ -181,13 +184,39 @@ class Engine:
             top, out.extra["refine"] = refine_peaks(service, space, top, self.search)
         return out, top[: self.config.top_k]
 
-    def _result(self, table, resting, space: SearchSpace, out: Outcome, top: list, timings, renderer_info) -> Result:
+    def _assess(self, service: ScoringService, space: SearchSpace, out: Outcome, answer, resting: RestingPose):
+        """(ScoreMap, Confidence) of the answer (x_m, y_m, yaw_rad): perch_warp.score_map and .confidence,
+        timed as one "confidence" stage; after the pruned search, the left-out candidates that could
+        change the margin are scored (on a quiet service: not the search's stages)."""
+        t = time.perf_counter()
+        k = knowledge(out, space, self.search)
+        quiet = service.quiet()
+
+        def score_fn(flat: np.ndarray) -> np.ndarray:
+            return quiet.score(space.at(flat))
+
+        def differs(offsets: np.ndarray) -> np.ndarray:
+            return yaw_differs(self.mesh.vertices_m, resting.R_rest, offsets)
+
+        conf = grid_confidence(k, space, answer, differs, score_fn if out.bounds is not None else None)
+        smap = score_map(k, space)
+        service.lap("confidence", t)
+        return smap, conf
+
+    def _result(
+        self, table, resting, space: SearchSpace, out: Outcome, top: list, timings, renderer_info,
+        assessed: tuple[ScoreMap, Confidence],
+    ) -> Result:  # fmt: skip
         tx, ty, tyaw, _ = np.array(top).T  # table frame: metres, metres, radians
         R, tr = model_to_camera(table, resting, tx, ty, tyaw)
         cands = [Candidate(*c, pose_matrix(R[n], tr[n])) for n, c in enumerate(top)]
-        return self._result_of(cands, len(space), out, timings, renderer_info, space)
+        return self._result_of(cands, len(space), out, timings, renderer_info, space, assessed)
 
-    def _result_of(self, cands: list, n_candidates: int, out: Outcome, timings, renderer_info, space) -> Result:
+    def _result_of(
+        self, cands: list, n: int, out: Outcome, timings, renderer_info, space, assessed: tuple[ScoreMap, Confidence]
+    ) -> Result:
+        """The Result of a search over n candidates (space: its x, y, yaw grid; several resting poses: n is
+        len(space) times their number)."""
         cfg = self.config
         info = {
             "weights": self.weights.source,
@@ -211,7 +240,8 @@ class Engine:
             **out.extra,
         }
         n_scored = int(np.isfinite(out.scores).sum())
-        return Result(cands[0], cands, n_candidates, n_scored, timings, self.device, info)
+        smap, conf = assessed
+        return Result(cands[0], cands, n, n_scored, timings, self.device, info, confidence=conf, heatmap=smap)
 
     def _estimate_rests(self, image_rgb, camera, table, rests: list[Rest], space, progress, probe, probe_resting):
         """`estimate` over several resting poses (search/rests.py), on one scoring service."""
@@ -234,6 +264,8 @@ class Engine:
             if self.config.refine:
                 top, extra["refine"] = over_rests.refine_joint(services, space, top, self.search, self.config)
             top = top[: self.config.top_k]
+            won = top[0][4]  # heat map and confidence over the winning resting pose's grid
+            assessed = self._assess(services[won], space, outs[won], top[0][:3], rests[won].pose)
             wall_s = time.perf_counter() - t_start
             if probe is not None:  # a diagnostic: timed apart, not part of the search's total
                 t_probe = time.perf_counter()
@@ -250,7 +282,7 @@ class Engine:
         for x, y, yaw, sc, p in top:
             R, tr = model_to_camera(table, rests[p].pose, x, y, yaw)
             cands.append(Candidate(x, y, yaw, sc, pose_matrix(R[0], tr[0]), rests[p].label))
-        result = self._result_of(cands, len(space) * len(rests), out, timings, renderer_info, space)
+        result = self._result_of(cands, len(space) * len(rests), out, timings, renderer_info, space, assessed)
         p = top[0][4]
         best = over_rests.per_rest_best(outs)
         result.resting = RestingChoice(rests[p], p, rests, best, [o.evaluated for o in outs])

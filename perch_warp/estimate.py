@@ -44,6 +44,8 @@ def run(args: argparse.Namespace) -> int:
         check_output_file(args.out, "--out")
     if args.overlay:
         check_output_file(args.overlay, "--overlay")
+    if args.heatmap:
+        check_output_file(args.heatmap, "--heatmap")
     width, height = image_header_size(args.image)
     image_id = _image_id(args)
     entry = _camera_entry(args, image_id)
@@ -73,6 +75,7 @@ def run(args: argparse.Namespace) -> int:
         f"score {b.score:.4f}"
     )
     print(rest_line(won, len(rests), args.rest))
+    print(result.confidence.line())
     print(timing_line(result))
     print(search_summary(result))
     print(renderer_line(result))
@@ -83,6 +86,10 @@ def run(args: argparse.Namespace) -> int:
         write_json_atomic(args.out, out)
     if args.overlay:
         _write_overlay(args.overlay, engine, image, camera, b, truth, out)
+    if args.heatmap:
+        from .heatmap import write_heatmap  # matplotlib: imported only when a heat map is asked for
+
+        write_heatmap(args.heatmap, image, camera, table, result, None if truth is None else truth[2:4])
     return 0
 
 
@@ -225,4 +232,10 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
     g = p.add_argument_group("output")
     g.add_argument("--out", default=None, help="write the result as JSON here")
     g.add_argument("--overlay", default=None, help="write a PNG of the best pose over the photo here")
+    g.add_argument(
+        "--heatmap",
+        default=None,
+        help="write a PNG of the best score over yaw at each (x, y) of the searched table: over the photo and "
+        "as a top-down map with the best peaks numbered (cells the search did not score are grey)",
+    )
     g.add_argument("--quiet", action="store_true", help="no progress bar or notes on stderr")

@@ -4,8 +4,13 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from .confidence import Confidence
+    from .score_map import ScoreMap
 
 
 @dataclass
@@ -79,6 +84,10 @@ class Result:
     info: dict = field(default_factory=dict)
     # The resting pose that won, in a search over several (Engine.estimate given a list); else None.
     resting: RestingChoice | None = None
+    # How sure the answer is (perch_warp.confidence) and the best score over yaw per table cell
+    # (perch_warp.score_map); None where a Result is built without them.
+    confidence: Confidence | None = None
+    heatmap: ScoreMap | None = None
 
     @property
     def x_m(self) -> float:
@@ -112,6 +121,7 @@ class Result:
             "n_scored": self.n_scored,
             "timings_s": self.timings_s,
             "device": self.device,
+            "confidence": None if self.confidence is None else self.confidence.to_dict(),
             **self.info,
             **({"resting": self.resting.to_dict()} if self.resting is not None else {}),
         }

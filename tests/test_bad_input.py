@@ -125,6 +125,11 @@ BAD_ESTIMATE: list[tuple[str, Callable[[Path, Path], dict], str]] = [
     # 4. output paths, before the search
     ("--out is a folder", lambda s, t: {"out": t / "outdir", "mkdir": t / "outdir"}, "is a folder: give a file"),
     ("--overlay under a file", lambda s, t: {"overlay": t / "f" / "o.png", "touch": t / "f"}, "which is a file"),
+    (
+        "--heatmap is a folder",
+        lambda s, t: {"extra": ["--heatmap", str(t / "outdir")], "mkdir": t / "outdir"},
+        "--heatmap",
+    ),  # fmt: skip
     # 7. --truth through the one validated BOP reader
     (
         "truth top-level list",

@@ -40,8 +40,9 @@ def _search_around(sc):
 
 def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, capsys):
     d, sc = scene_dir
-    out, png = tmp_path / "r.json", tmp_path / "o.png"
+    out, png, heat = tmp_path / "r.json", tmp_path / "o.png", tmp_path / "sub" / "h.png"
     args = _args(d, *_search_around(sc), "--weights", "caffe", "--out", str(out), "--overlay", str(png))
+    args += ["--heatmap", str(heat)]
     args += ["--refine-yaw", "3"]  # a smaller cell than the default 1 deg (11 x 11 x 21 poses)
     args += ["--truth", str(d / "scene_gt.json"), "--obj-id", "1"]
     assert main(args) == 0
@@ -55,6 +56,10 @@ def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, ca
     # On the CPU the default search is the pruned one, and the summary says it was chosen automatically.
     assert "pose: x =" in stdout and "search: pruned (auto on cpu), scored " in stdout
     assert "refined below the grid: the best pose's cell at 2 mm / 3°" in stdout and res["refine"]["evaluated"] > 0
+    # The confidence: in the JSON and on its line; the heat map: a PNG (its values: tests/test_heatmap.py).
+    margin = res["confidence"]["margin"]
+    assert res["confidence"]["exact"] and f"confidence: margin {margin:.4f}" in stdout
+    assert Image.open(heat).size[0] > 0
 
     # The exhaustive search, on two CPU threads, rendered by the BVH form of kernel #1 (the first run
     # used the raster form, auto's choice on the CPU): the same poses and scores, every candidate scored.

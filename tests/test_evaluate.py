@@ -461,3 +461,51 @@ def test_rest_stable_reaches_the_estimator_and_is_recorded(tmp_path, monkeypatch
     assert command.run(p.parse_args([*base, "--out", str(tmp_path / "b")])) == 0
     assert seen[-1] == ("truth", 30.0)
     assert "rest" not in json.loads((tmp_path / "b" / "eval_config.json").read_text())["options"]
+
+
+def test_separation_against_a_hand_computed_example():
+    from perch_warp.eval.metrics import separation
+
+    # Most confident first: None (no rival pose: above every number) right, 0.5 right, 0.4 wrong, 0.2 right,
+    # 0.1 wrong. Top 50 % = ceil(2.5) = 3 answers, 2 right; top 80 % = 4, 3 right. ROC AUC: of the 3 x 2
+    # (right, wrong) pairs, the right margin is larger in 5 (all but 0.2 < 0.4).
+    s = separation([0.5, 0.4, None, 0.1, 0.2], [True, False, True, False, True])
+    assert s["top50_accuracy_pct"] == pytest.approx(200 / 3) and s["top80_accuracy_pct"] == pytest.approx(75.0)
+    assert s["roc_auc"] == pytest.approx(5 / 6) and s["accuracy_pct"] == pytest.approx(60.0)
+    assert (s["n"], s["n_right"], s["n_wrong"]) == (5, 3, 2)
+    # A tie between a right and a wrong answer counts half.
+    assert separation([0.3, 0.3], [True, False])["roc_auc"] == pytest.approx(0.5)
+    # All right: no ROC AUC.
+    assert separation([0.3, 0.1], [True, True])["roc_auc"] is None
+
+
+class ConfidentFakeEstimator(FakeEstimator):
+    """The fake estimates with a confidence (larger for the nearer ones) and a small heat map each."""
+
+    def __call__(self, target, image, camera, table, resting, space):
+        from perch_warp.score_map import ScoreMap
+
+        est = super().__call__(target, image, camera, table, resting, space)
+        dx, _ = OFFSETS[target.key]
+        est.details["confidence"] = {"margin": 0.1 - dx, "exact": True}
+        xs, ys = np.array([-0.02, 0.0, 0.02]), np.array([-0.01, 0.01])
+        best = np.array([[0.1, np.nan], [0.3, 0.2], [-np.inf, 0.1]])
+        est.heatmap = ScoreMap(xs, ys, 0.02, best, np.where(np.isnan(best), 0.5, best), np.zeros((3, 2)), "pruned")
+        return est
+
+
+def test_confidence_columns_summary_and_worst_heat_maps(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    s = run_eval(root, tmp_path / "out", ConfidentFakeEstimator(), plots=True, gallery=2)
+    rows = list(csv.DictReader(open(tmp_path / "out" / "per_target.csv")))
+    margins = [float(r["confidence"]) for r in rows]
+    right = [float(r["adds_mm"]) < 20.0 for r in rows]
+    for r, m in zip(rows, margins, strict=True):
+        dx, _ = OFFSETS[(int(r["scene_id"]), int(r["im_id"]), int(r["inst"]))]
+        assert m == pytest.approx(0.1 - dx)
+    from perch_warp.eval.metrics import separation
+
+    assert s["confidence_separation"] == separation(margins, right)
+    assert "Confidence (margin" in (tmp_path / "out" / "table.txt").read_text()
+    assert len(list((tmp_path / "out" / "heatmaps").glob("*.npz"))) == 5
+    assert "worst_heatmaps.png" in s["outputs"] and (tmp_path / "out" / "worst_heatmaps.png").stat().st_size > 0

@@ -114,8 +114,13 @@ def _diagnostics(d: Done) -> dict:
     """The ground truth's cell (its best score, the answer's margin over it) and the answer's silhouette."""
     probe = d.details.get("probe") or {}
     sil = d.details.get("silhouette") or {}
+    conf = d.details.get("confidence") or {}
     cell = probe.get("score")
     return {
+        # None when no clearly different pose shows a feature point (the most confident case): see separation.
+        "confidence": conf.get("margin"),
+        "confidence_exact": conf.get("exact"),
+        "confidence_known": bool(conf),
         "gt_cell_score": cell,
         "margin": d.score - cell if cell is not None else None,
         "est_points": sil.get("points"),
@@ -152,6 +157,8 @@ _PER_TARGET_COLUMNS = [
     "est_points",
     "est_edge_share",
     "rest",
+    "confidence",
+    "confidence_exact",
 ]
 
 
@@ -199,6 +206,39 @@ def _metrics(rows: list[dict]) -> dict:
     }
 
 
+def separation(margins: Sequence[float | None], right: Sequence[bool], shares=(0.5, 0.8)) -> dict:
+    """How well a confidence separates right from wrong answers: the accuracy (%) of the most confident
+    share of them (ceil(share * n) answers, highest margin first, ties in the given order) for each share,
+    of all of them, and the ROC AUC (the chance that a right answer's margin exceeds a wrong one's, ties
+    counting half: the Mann-Whitney statistic); None where undefined (no answer; ROC AUC with all right or
+    all wrong). A margin of None (no clearly different pose to compare with) ranks above every number."""
+    from scipy.stats import rankdata
+
+    m = np.array([np.inf if v is None else v for v in margins], dtype=np.float64)
+    ok = np.asarray(right, dtype=bool)
+    n, n_right = len(m), int(ok.sum())
+    out: dict = {"n": n, "n_right": n_right, "n_wrong": n - n_right, "accuracy_pct": None, "roc_auc": None}
+    if n == 0:
+        return out | {f"top{round(100 * s)}_accuracy_pct": None for s in shares}
+    order = np.argsort(-m, kind="stable")
+    for s in shares:
+        k = max(1, math.ceil(s * n - 1e-9))
+        out[f"top{round(100 * s)}_accuracy_pct"] = float(100.0 * ok[order[:k]].mean())
+    out["accuracy_pct"] = float(100.0 * ok.mean())
+    if 0 < n_right < n:
+        ranks = rankdata(m)  # average ranks: ties count half
+        out["roc_auc"] = float((ranks[ok].sum() - n_right * (n_right + 1) / 2) / (n_right * (n - n_right)))
+    return out
+
+
+def confidence_separation(rows: list[dict]) -> dict | None:
+    """`separation` of the pooled targets that have a confidence (right: ADD-S < 2 cm); None without any."""
+    rs = [r for r in rows if r.get("confidence_known")]
+    if not rs:
+        return None
+    return separation([r["confidence"] for r in rs], [r["adds_mm"] < 1000.0 * ADDS_THRESHOLD_M for r in rs])
+
+
 def summarize(rows: list[dict], ds: bop.Dataset, selection: Selection) -> dict:
     """Metrics per object, their mean over objects (thesis Table 4.1's "All Objects"), and pooled over targets."""
     by_obj: dict[int, list[dict]] = defaultdict(list)
@@ -228,6 +268,9 @@ def summarize(rows: list[dict], ds: bop.Dataset, selection: Selection) -> dict:
     occ = occlusion_accuracy(rows)
     if occ is not None:
         summary["occlusion"] = occ
+    sep = confidence_separation(rows)
+    if sep is not None:
+        summary["confidence_separation"] = sep
     by_label = label_metrics(rows)
     if by_label:
         summary["by_label"] = by_label
@@ -337,6 +380,14 @@ def _table_notes(summary: dict, fmt) -> list[str]:
                 f"Misses (>= 2 cm): {misses.get('score miss', 0)} score misses (the answer outscores the ground "
                 f"truth's cell), {misses.get('search miss', 0)} search misses (the truth's cell scores higher)."
             )
+    sep = summary.get("confidence_separation")
+    if sep:
+        auc = "n/a (all right or all wrong)" if sep["roc_auc"] is None else f"{sep['roc_auc']:.3f}"
+        notes.append(
+            f"Confidence (margin, right = ADD-S < 2 cm): the most confident 50 % are "
+            f"{fmt(sep['top50_accuracy_pct'], '.1f')} % right, 80 %: {fmt(sep['top80_accuracy_pct'], '.1f')} %, "
+            f"all: {fmt(sep['accuracy_pct'], '.1f')} %; ROC AUC {auc} (n = {sep['n']})."
+        )
     outside = p.get("gt_outside_region") if p else 0
     if outside:
         notes.append(f"{outside} targets lie outside their search region.")

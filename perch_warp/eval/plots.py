@@ -15,6 +15,15 @@ from ..camera import Camera
 from ..image import load_rgb
 from .metrics import ADDS_THRESHOLD_M, AUC_MAX_THRESHOLD_M, GeometryCache
 
+# Each target's heat map (perch_warp.score_map.ScoreMap as .npz), written by the eval loop.
+HEATMAP_DIR = "heatmaps"
+
+
+def heatmap_path(out_dir: Path, key: tuple[int, int, int]) -> Path:
+    """Where target (scene_id, im_id, inst)'s heat map lies under OUTDIR."""
+    scene, im, inst = key
+    return Path(out_dir) / HEATMAP_DIR / f"{scene:06d}_{im:06d}_{inst}.npz"
+
 
 def silhouette(camera: Camera, vertices_m: np.ndarray, faces: np.ndarray, R: np.ndarray, t_m: np.ndarray) -> np.ndarray:
     """Bool (H, W) mask of the model's projection (every face filled; occlusion by other objects ignored)."""
@@ -93,7 +102,47 @@ def make_plots(
 
     if gallery > 0:
         made.append(_gallery(out_dir / "gallery.png", rows, names, selection, geometry, gallery, plt))
+        worst = _worst_heatmaps(out_dir, rows, names, selection, tables, gallery, plt)
+        if worst:
+            made.append(worst)
     return made
+
+
+def _worst_heatmaps(out_dir: Path, rows: list[dict], names: dict, selection: Selection, tables: TableCache,
+                    k: int, plt) -> str | None:  # fmt: skip
+    """worst_heatmaps.png: the heat maps (perch_warp.heatmap) of the k targets of largest ADD-S that have
+    one saved (searched by this engine, in this OUTDIR), the ground truth marked; None when there is none."""
+    from ..heatmap import draw_panels
+    from ..score_map import ScoreMap
+
+    order = sorted(range(len(rows)), key=lambda i: (-rows[i]["adds_mm"], i))
+    key = [(rows[i]["scene_id"], rows[i]["im_id"], rows[i]["inst"]) for i in order]
+    picked = [(i, heatmap_path(out_dir, kk)) for i, kk in zip(order, key, strict=True)]
+    picked = [(i, p) for i, p in picked if p.exists()][:k]
+    if not picked:
+        return None
+    images = {(im.scene_id, im.im_id): im for im in selection.images}
+    fig, axes = plt.subplots(len(picked), 2, figsize=(11, 4.0 * len(picked)), squeeze=False)
+    for (a, b), (i, p) in zip(axes, picked, strict=True):
+        r = rows[i]
+        im = images[(r["scene_id"], r["im_id"])]
+        smap = ScoreMap.load(p)
+        answer = (r["x_est_m"], r["y_est_m"])
+        mesh = draw_panels(
+            a, b, load_rgb(im.rgb), im.camera, tables.get(im)[0], smap, answer, (r["x_gt_m"], r["y_gt_m"])
+        )
+        fig.colorbar(mesh, ax=b, label="best score over yaw", fraction=0.046, pad=0.03)
+        conf = r.get("confidence")
+        a.set_title(
+            f"{names[r['obj_id']]}: scene {r['scene_id']} im {r['im_id']} inst {r['inst']}, "
+            f"ADD-S {r['adds_mm']:.1f} mm, confidence {'-' if conf is None else format(conf, '.4f')}",
+            fontsize=8,
+        )
+        b.set_title("star: answer, x: ground truth, numbers: peaks; grey: " + (smap.why_unknown or "none"), fontsize=7)
+    fig.tight_layout()
+    fig.savefig(out_dir / "worst_heatmaps.png", dpi=80)
+    plt.close(fig)
+    return "worst_heatmaps.png"
 
 
 def _adds_curve(path: Path, rows: list[dict], by_obj: dict[int, list[dict]], names: dict, plt) -> None:

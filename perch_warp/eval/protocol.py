@@ -21,7 +21,7 @@ from ..errors import PerchError
 from ..image import load_rgb
 from ..mesh import load_mesh
 from ..options import SearchTooLarge
-from ..outputs import atomic_write_text, check_output_dir, folder_lock
+from ..outputs import atomic_write, atomic_write_text, check_output_dir, folder_lock
 from ..resting import DEFAULT_ROLL_STEP_DEG, stable_rests
 from ..search_space import SearchSpace
 from ..table import RestingPose, Table, decompose_on_table
@@ -38,7 +38,7 @@ from .journal import (
     write_results,
 )
 from .metrics import GeometryCache, compute_errors, format_table, summarize, write_per_target
-from .plots import make_plots
+from .plots import heatmap_path, make_plots
 
 # ----------------------------------------------------------------------------- estimator
 
@@ -54,6 +54,9 @@ class Estimate:
     # Seconds of the call spent on diagnostics (the ground truth's cell, the answer's silhouette), which
     # the per-target runtime leaves out.
     diagnostics_s: float = 0.0
+    # The best score over yaw per table cell (perch_warp.score_map.ScoreMap), saved under HEATMAP_DIR
+    # for the worst targets' heat maps; None: not given.
+    heatmap: object = None
 
 
 #: (target, image_rgb uint8 HxWx3, camera, table, resting, space) -> Estimate
@@ -125,10 +128,11 @@ class EngineEstimator:
         if res.resting is not None:
             details["rest"] = res.resting.label
             details["rest_z_m"] = res.resting.z_m
+        details["confidence"] = res.confidence.to_dict()
         t = time.perf_counter()
         details["silhouette"] = silhouette_stats(engine, camera, T)
         diagnostics_s = res.timings["probe"] + time.perf_counter() - t
-        return Estimate(T[:3, :3], T[:3, 3], float(res.score), details, diagnostics_s)
+        return Estimate(T[:3, :3], T[:3, 3], float(res.score), details, diagnostics_s, res.heatmap)
 
 
 def silhouette_stats(engine, camera: Camera, T_m2c: np.ndarray) -> dict:
@@ -252,6 +256,8 @@ def _run_targets(out_dir, selection, done, foreign, failed, tables, make_estimat
                 continue
             # Journal first: if the rewrite below is interrupted, the journal still has the target.
             append_journal(out_dir, target, d)
+            if state.get("heatmap") is not None:  # after the journal: a lost heat map only loses a picture
+                atomic_write(heatmap_path(out_dir, target.key), state["heatmap"].save)
             done[target.key] = d
             failed.pop(target.key, None)
             write_results(out_dir, selection, done, foreign)
@@ -263,6 +269,7 @@ def _run_targets(out_dir, selection, done, foreign, failed, tables, make_estimat
 
 def _run_target(im, target: Target, state: dict, tables: TableCache, make_estimator, space_fn, selection) -> Done:
     """One target's search, timed; `state` carries the estimator and the current image between targets."""
+    state["heatmap"] = None
     if target.problem:
         raise PerchError(target.problem)
     if state["image_key"] != (im.scene_id, im.im_id):
@@ -282,6 +289,7 @@ def _run_target(im, target: Target, state: dict, tables: TableCache, make_estima
         prepare(target.obj_id)  # building the engine is not part of the per-target runtime
     t0 = time.perf_counter()
     est = estimator(target, state["image"], im.camera, table, resting, space)
+    state["heatmap"] = est.heatmap
     dt = time.perf_counter() - t0 - est.diagnostics_s
     details = dict(est.details)
     details["table"] = table_how

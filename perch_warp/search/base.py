@@ -14,13 +14,17 @@ from .scoring import SearchStats
 class Outcome:
     """A search's scores over the space: scores[i] is candidate i of the space, or grid candidate
     flat[i] when flat is given (a search that scores a subset); -inf where not scored. `evaluated`:
-    candidates scored; `stats`: what it cost; `extra`: the search's own facts for the result."""
+    candidates scored; `stats`: what it cost; `extra`: the search's own facts for the result.
+    `bounds` (the pruned search): every candidate's silhouette bound, -inf where it shows no feature
+    point; a candidate left unscored (score -inf, bound finite) scores at most its bound
+    (+ bound.BOUND_SLACK), which is what perch_warp.score_map needs to tell pruned from invisible."""
 
     scores: np.ndarray
     evaluated: int
     stats: SearchStats
     flat: np.ndarray | None = None
     extra: dict = field(default_factory=dict)
+    bounds: np.ndarray | None = None
 
 
 def auto_search(device: str) -> str:

@@ -78,7 +78,7 @@ def run(service: ScoringService, space: SearchSpace, prior: Incumbent | None = N
         "bound_rays": stats.bound_rays,
         "k": k,  # the rank whose score a bound had to reach
     }
-    return Outcome(scores, len(bf.scored), stats, extra=extra)
+    return Outcome(scores, len(bf.scored), stats, extra=extra, bounds=bf.bounds)
 
 
 def _bound_all(service: ScoringService, poses: PoseSource, stats: SearchStats):

@@ -1,0 +1,146 @@
+"""The heat map and the confidence: against the scores of the same poses (Engine.score), brute-force
+references, and an ambiguous photo (two copies of the object) against an unambiguous one."""
+
+import math
+
+import numpy as np
+import pytest
+from _device import DEVICE
+
+from perch_warp import confidence as conf_mod
+from perch_warp.confidence import DIFFERENT_XY_M, DIFFERENT_YAW_RAD, SYMMETRY_TOL_M, yaw_differs
+from perch_warp.demo import demo_scene
+from perch_warp.engine import Engine, EngineConfig
+from perch_warp.pose_error import adi
+from perch_warp.score_map import Knowledge, best_over_rest
+from perch_warp.search_space import SearchSpace
+from perch_warp.table import rot_z
+
+
+@pytest.fixture(scope="module")
+def scene():
+    return demo_scene(seed=1)
+
+
+def _space(scene, half=0.04, step=0.02, yaw_deg=45.0):
+    gx, gy, _ = scene.truth_xy_yaw
+    cx, cy = round(gx / step) * step, round(gy / step) * step
+    return SearchSpace((cx - half, cx + half), (cy - half, cy + half), step, (0, 2 * math.pi), math.radians(yaw_deg))
+
+
+def _all_scores(engine, scene, space):
+    x, y, yaw = space.candidates()
+    return engine.score(scene.image, scene.camera, scene.table, scene.resting, x, y, yaw)
+
+
+def test_heat_map_is_the_best_score_over_yaw_of_the_same_poses(scene, random_weights):
+    space = _space(scene)
+    engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(search="exhaustive", refine=False))
+    r = engine.estimate(scene.image, scene.camera, scene.table, scene.resting, space)
+    xs, ys, yaws = space.axes()
+    ref = _all_scores(engine, scene, space).reshape(len(xs), len(ys), len(yaws))
+    assert np.array_equal(r.heatmap.best, ref.max(axis=2))
+    assert np.array_equal(r.heatmap.best_yaw_rad, yaws[ref.argmax(axis=2)])
+    assert np.array_equal(r.heatmap.xs_m, xs) and r.heatmap.n_unknown == 0 and r.heatmap.why_unknown == ""
+
+    # Pruned (top 1): the cells it knows hold the same values; the others are NaN, and their bound holds.
+    pruned = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(search="pruned", refine=False, top_k=1))
+    p = pruned.estimate(scene.image, scene.camera, scene.table, scene.resting, space).heatmap
+    known = ~np.isnan(p.best)
+    assert np.array_equal(p.best[known], ref.max(axis=2)[known])
+    assert np.all(ref.max(axis=2)[~known] <= p.upper[~known])
+    assert p.n_unknown == 0 or "pruned" in p.why_unknown
+
+
+def test_best_over_rest_takes_any_extra_axis_and_never_invents_values():
+    # (x, y, rest, yaw) = (2, 1, 2, 2): cell 0 all known; cell 1 has an unknown whose bound beats the known.
+    value = np.array([0.1, 0.5, 0.2, -np.inf, 0.3, np.nan, 0.1, 0.2])
+    upper = np.array([0.1, 0.5, 0.2, -np.inf, 0.3, 0.9, 0.1, 0.2])
+    best, up, arg = best_over_rest(Knowledge(value, upper, (2, 1, 2, 2), "pruned"))
+    assert best[0, 0] == 0.5 and arg[0, 0] == 1 and up[0, 0] == 0.5
+    assert np.isnan(best[1, 0]) and up[1, 0] == 0.9
+    # With the bound below the known best, the cell's best is known exactly.
+    upper[5] = 0.25
+    best, _, arg = best_over_rest(Knowledge(value, upper, (2, 1, 2, 2), "pruned"))
+    assert best[1, 0] == 0.3 and arg[1, 0] == 0
+
+
+def _reference_margin(scene, space, scores, answer):
+    """Brute force over the candidates, with ADD-S on every vertex for the yaw test."""
+    V = scene.mesh.vertices_m
+    R0 = scene.resting.R_rest
+    a = [adi(rot_z(t) @ R0, np.zeros(3), R0, np.zeros(3), V) for t in (DIFFERENT_YAW_RAD, -DIFFERENT_YAW_RAD)]
+    ref = max(SYMMETRY_TOL_M, *a)
+    near, far = -np.inf, -np.inf
+    for x, y, yaw, s in zip(*space.candidates(), scores, strict=True):
+        d = abs((yaw - answer[2] + math.pi) % (2 * math.pi) - math.pi)
+        turn = d > DIFFERENT_YAW_RAD + 1e-9 and adi(rot_z(yaw - answer[2]) @ R0, np.zeros(3), R0, np.zeros(3), V) > ref
+        if math.hypot(x - answer[0], y - answer[1]) > DIFFERENT_XY_M + 1e-9 or turn:
+            far = max(far, s)
+        else:
+            near = max(near, s)
+    return near - far
+
+
+def test_confidence_is_the_margin_to_the_best_clearly_different_pose(scene, random_weights):
+    space = _space(scene)
+    for search in ("exhaustive", "pruned"):
+        engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(search=search, top_k=1, refine=False))
+        r = engine.estimate(scene.image, scene.camera, scene.table, scene.resting, space)
+        answer = (r.x_m, r.y_m, r.yaw_rad)
+        want = _reference_margin(scene, space, _all_scores(engine, scene, space), answer)
+        assert r.confidence.exact and r.confidence.margin == pytest.approx(want, abs=1e-12), search
+
+
+def test_symmetries_about_the_table_normal_do_not_count_as_different_yaws():
+    # A cylinder (body of revolution): no yaw counts. A 4 x 2 x 1 box: 180° does not, 90° does.
+    t = np.linspace(0, 2 * math.pi, 720, endpoint=False)
+    cyl = np.concatenate([np.stack([0.03 * np.cos(t), 0.03 * np.sin(t), np.full_like(t, z)], -1) for z in (0, 0.1)])
+    offsets = np.radians([0.0, 10.0, 30.0, 90.0, 175.0, 180.0, 200.0])
+    assert not yaw_differs(cyl, np.eye(3), offsets).any()
+    g = np.linspace(-1, 1, 11)
+    box = np.array([(x, y, z) for x in g for y in g for z in g]) * np.array([0.04, 0.02, 0.01])
+    assert yaw_differs(box, np.eye(3), offsets).tolist() == [False, False, True, True, False, False, True]
+
+
+@pytest.fixture(scope="module")
+def caffe_engine(scene, caffe_weights):
+    return Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(search="exhaustive", refine=False))
+
+
+def test_two_copies_of_the_object_leave_no_margin(scene, caffe_engine):
+    # One copy: the photographed object, rendered over itself; two: a second rendering 6 cm away (3 grid
+    # steps, so that both copies sit alike on the grid). The second is as good an answer as the first.
+    gx, gy, gyaw = scene.truth_xy_yaw
+    step = 0.02
+    cx, cy = round(gx / step) * step, round(gy / step) * step
+    space = SearchSpace((cx - 0.02, cx + 0.08), (cy - 0.02, cy + 0.02), step, (0, 2 * math.pi), math.radians(30))
+    from perch_warp.table import model_to_camera, pose_matrix
+
+    def paste(img, x, y):
+        R, t = model_to_camera(scene.table, scene.resting, x, y, gyaw)
+        rgb, mask = caffe_engine.render(scene.camera, pose_matrix(R[0], t[0]))
+        out = img.copy()
+        out[mask] = (255 * rgb[mask]).round().astype(np.uint8)
+        return out
+
+    one = paste(scene.image, gx, gy)
+    two = paste(one, gx + 0.06, gy)
+    margins = []
+    for img in (one, two):
+        r = caffe_engine.estimate(img, scene.camera, scene.table, scene.resting, space)
+        margins.append(r.confidence.margin)
+    # (On this coarse grid the single object's margin is small too: its own pose lies between grid points.)
+    assert margins[0] > 0 and abs(margins[1]) < 0.25 * margins[0], margins
+
+
+def test_settle_scores_only_what_could_beat_the_known_best():
+    k = Knowledge(np.array([0.5, np.nan, np.nan, 0.2]), np.array([0.5, 0.7, 0.4, 0.2]), (4,), "pruned")
+    asked = []
+
+    def score_fn(idx):
+        asked.extend(idx.tolist())
+        return np.full(len(idx), 0.45)
+
+    assert conf_mod.settle(k, np.ones(4, bool), score_fn) == 1 and asked == [1]
+    assert k.set_max(np.ones(4, bool))[:2] == (0.5, 0)
