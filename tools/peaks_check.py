@@ -59,7 +59,7 @@ def main(argv: list[str] | None = None) -> int:
             t = time.perf_counter()
             res = eng.estimate(load_rgb(im.rgb), im.camera, table, resting, space)
             pts = pose_error.subsample_points(mesh.vertices_m)
-            peaks = res.info["refine"]["peaks"]
+            peaks = res.info.extra["refine"]["peaks"]
             errors = []
             for k in range(1, len(peaks) + 1):
                 best = max(peaks[:k], key=lambda q: q["score"])
@@ -72,7 +72,7 @@ def main(argv: list[str] | None = None) -> int:
                     "obj_id": tg.obj_id,
                     "adds_m_by_k": errors,
                     "peaks": peaks,
-                    "scored": res.info["evaluated"],
+                    "scored": res.info.evaluated,
                     "candidates": res.n_candidates,
                     "seconds": time.perf_counter() - t,
                 }
