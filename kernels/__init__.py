@@ -1,9 +1,12 @@
-"""Warp kernels of perch_warp (installed as `perch_warp.kernels`).
+"""Warp kernels of the engine (installed as `perch_warp.kernels`); the demo's and bench's own
+kernels sit beside their callers (perch_warp/photo_kernels.py, perch_warp/bench/kernels.py).
 
-render   -- kernel #1: ray-cast the textured mesh for a batch of candidate poses.
+render   -- kernel #1: ray-cast the textured mesh for a batch of candidate poses (BVH form),
+            and the MeshLook (appearance) and PixelRays structs every kernel shares.
+raster   -- kernel #1's raster form: each triangle tests the pixel rays it covers.
 features -- kernel #2: AlexNet-conv1 features of the composited candidate and its
             rarity-weighted cosine similarity with the photo's features.
 boxes    -- candidates' pixel boxes: the mesh's hull points projected for each pose.
 reduce   -- the top-α mean of each candidate's feature-point scores (one float back per candidate).
-raycast_bench -- `perch_warp bench`'s microbenchmark: one ray per pixel, hit depth only.
+bound    -- the pruned search's silhouette bound (the BVH form's any-hit silhouette, the ceiling map at hits).
 """

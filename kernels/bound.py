@@ -28,7 +28,7 @@ def silhouette_rarity(rarity: wp.array2d(dtype=float), gx: int, gy: int) -> floa
 
 
 @wp.kernel(enable_backward=False)
-def rarity_under_silhouette(
+def anyhit_points(
     mesh: wp.uint64,
     rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
@@ -37,23 +37,20 @@ def rarity_under_silhouette(
     n_cand: int,
     ks: int,
     stride: int,
-    rarity: wp.array2d(dtype=float),
-    out: wp.array(dtype=float),
+    out_hit: wp.array(dtype=wp.uint8),
 ):
+    """The BVH form's silhouette: 1 where feature point i's pixel ray hits the mesh inside its
+    candidate's rendered box, else 0 (kernel #2 reads the mask only inside that box)."""
     i = wp.tid()
     c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
-    rb = box[c]
-    # Kernel #2 reads the mask only inside the rendered box; outside it a point is off the mask.
-    if not in_box(rb, u, v):
-        out[i] = NOT_ON_MASK
+    out_hit[i] = wp.uint8(0)
+    if not in_box(box[c], u, v):
         return
     # Any hit, not the closest: Warp's any-hit query runs the same ray-triangle test over the same
     # range [0, max_t) as kernel #1's closest-hit query, so it hits exactly when that one does, and
     # stops at the first triangle (about half the traversal, tools/render_cost.py).
-    if not wp.mesh_query_ray_anyhit(mesh, rays.origin_m[c], pixel_ray_m(rays, c, u, v), 1.0e6):
-        out[i] = NOT_ON_MASK
-        return
-    out[i] = silhouette_rarity(rarity, gx, gy)
+    if wp.mesh_query_ray_anyhit(mesh, rays.origin_m[c], pixel_ray_m(rays, c, u, v), 1.0e6):
+        out_hit[i] = wp.uint8(1)
 
 
 @wp.kernel(enable_backward=False)
@@ -67,8 +64,9 @@ def rarity_at_hits(
     rarity: wp.array2d(dtype=float),
     out: wp.array(dtype=float),
 ):
-    """rarity_under_silhouette for the raster form of kernel #1, whose hits per feature point
-    (kernels/raster.py: splat_points, within the rendered box) are already known."""
+    """Each feature point's bound: the ceiling map at the point where the renderer's silhouette
+    (`hits`: anyhit_points for the BVH form, kernels/raster.py splat_points for the raster form,
+    within the rendered box) covers it, else NOT_ON_MASK."""
     i = wp.tid()
     if hits[i] == wp.uint8(0):
         out[i] = NOT_ON_MASK

@@ -12,7 +12,7 @@ colour each pixel from its face as kernel #1 does. Same layout as kernel #1: can
 
 import warp as wp
 
-from .render import PixelRays, box_pixel, pixel_ray_m, sample_texture, surface_uv, vertex_color
+from .render import MeshLook, PixelRays, box_pixel, pixel_ray_m, sample_texture, surface_uv, vertex_color
 
 # Key of a pixel no triangle covers (above any hit's key).
 NO_HIT = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
@@ -250,10 +250,7 @@ def splat_points(
 @wp.kernel(enable_backward=False)
 def locate_hits(
     points: wp.array(dtype=wp.vec3),
-    indices: wp.array(dtype=wp.int32),
-    uvs: wp.array(dtype=wp.vec2),
-    colors: wp.array(dtype=wp.vec3),
-    use_texture: int,
+    look: MeshLook,
     rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
     pix_off: wp.array(dtype=wp.int32),
@@ -276,20 +273,20 @@ def locate_hits(
     h = ray_triangle(
         rays.origin_m[c],
         pixel_ray_m(rays, c, u, v),
-        points[indices[f * 3 + 0]],
-        points[indices[f * 3 + 1]],
-        points[indices[f * 3 + 2]],
+        points[look.indices[f * 3 + 0]],
+        points[look.indices[f * 3 + 1]],
+        points[look.indices[f * 3 + 2]],
     )
     out_mask[i] = wp.uint8(1)
-    if use_texture != 0:
-        out_uv[i] = surface_uv(indices, uvs, f, h[2], h[3])
+    if look.use_texture != 0:
+        out_uv[i] = surface_uv(look.indices, look.uvs, f, h[2], h[3])
     else:
-        out_rgb[i] = vertex_color(indices, colors, f, h[2], h[3])
+        out_rgb[i] = vertex_color(look.indices, look.colors, f, h[2], h[3])
 
 
 @wp.kernel(enable_backward=False)
 def sample_hits(
-    texture: wp.array2d(dtype=wp.vec3),
+    look: MeshLook,
     uv: wp.array(dtype=wp.vec2),
     mask: wp.array(dtype=wp.uint8),
     out_rgb: wp.array(dtype=wp.vec3),
@@ -298,4 +295,4 @@ def sample_hits(
     cache: with the addresses known up front, a CPU overlaps the misses of many pixels."""
     i = wp.tid()
     if mask[i] != wp.uint8(0):
-        out_rgb[i] = sample_texture(texture, uv[i])
+        out_rgb[i] = sample_texture(look.texture, uv[i])

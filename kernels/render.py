@@ -67,21 +67,25 @@ def vertex_color(indices: wp.array(dtype=wp.int32), colors: wp.array(dtype=wp.ve
     return colors[indices[face * 3 + 0]] * bu + colors[indices[face * 3 + 1]] * bv + colors[indices[face * 3 + 2]] * w2
 
 
+@wp.struct
+class MeshLook:
+    """A mesh's appearance on the device (model frame): triangle corner indices (3 per face), per
+    vertex texture coordinates and a texture (RGB in [0, 1], row 0 at v = 0) when use_texture is 1,
+    else per vertex colours. Every kernel that colours a hit takes this one struct."""
+
+    indices: wp.array(dtype=wp.int32)
+    uvs: wp.array(dtype=wp.vec2)
+    texture: wp.array2d(dtype=wp.vec3)
+    colors: wp.array(dtype=wp.vec3)
+    use_texture: int
+
+
 @wp.func
-def surface_color(
-    indices: wp.array(dtype=wp.int32),
-    uvs: wp.array(dtype=wp.vec2),
-    texture: wp.array2d(dtype=wp.vec3),
-    colors: wp.array(dtype=wp.vec3),
-    use_texture: int,
-    face: int,
-    bu: float,
-    bv: float,
-) -> wp.vec3:
+def surface_color(look: MeshLook, face: int, bu: float, bv: float) -> wp.vec3:
     """Unlit colour at barycentric (bu, bv) of `face`: texture lookup or interpolated vertex colour."""
-    if use_texture != 0:
-        return sample_texture(texture, surface_uv(indices, uvs, face, bu, bv))
-    return vertex_color(indices, colors, face, bu, bv)
+    if look.use_texture != 0:
+        return sample_texture(look.texture, surface_uv(look.indices, look.uvs, face, bu, bv))
+    return vertex_color(look.indices, look.colors, face, bu, bv)
 
 
 @wp.struct
@@ -108,11 +112,7 @@ def pixel_ray_m(rays: PixelRays, c: int, u: int, v: int) -> wp.vec3:
 @wp.kernel(enable_backward=False)
 def render_boxes(
     mesh: wp.uint64,
-    indices: wp.array(dtype=wp.int32),
-    uvs: wp.array(dtype=wp.vec2),
-    texture: wp.array2d(dtype=wp.vec3),
-    colors: wp.array(dtype=wp.vec3),
-    use_texture: int,
+    look: MeshLook,
     rays: PixelRays,
     box: wp.array(dtype=wp.vec4i),
     pix_off: wp.array(dtype=wp.int32),
@@ -124,7 +124,7 @@ def render_boxes(
     c, u, v = box_pixel(pix_off, box, n_cand, i)
     q = wp.mesh_query_ray(mesh, rays.origin_m[c], pixel_ray_m(rays, c, u, v), 1.0e6)
     if q.result:
-        out_rgb[i] = surface_color(indices, uvs, texture, colors, use_texture, q.face, q.u, q.v)
+        out_rgb[i] = surface_color(look, q.face, q.u, q.v)
         out_mask[i] = wp.uint8(1)
     else:
         out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)

@@ -14,8 +14,8 @@ import numpy as np
 import warp as wp
 
 from .camera import Camera
-from .kernels.bound import rarity_at_hits, rarity_under_silhouette
-from .render import MeshRenderer, flat_offsets
+from .kernels.bound import rarity_at_hits
+from .render import PointLayout, Renderer
 from .score import top_alpha_mean_device
 
 # Scores are float32 cosines (which may exceed 1 by rounding) times rarity, averaged in float64:
@@ -24,7 +24,7 @@ BOUND_SLACK = 1e-5
 
 
 def silhouette_points(
-    renderer: MeshRenderer,
+    renderer: Renderer,
     camera: Camera,
     R_m2c: np.ndarray,
     t_m2c_m: np.ndarray,
@@ -37,48 +37,23 @@ def silhouette_points(
     """The ceiling map (each point's largest possible value) at each candidate's silhouette feature
     points (NOT_ON_MASK off it, 0 beyond the photo)
     and the flat offsets (B + 1,), device arrays in the layout of FeatureScorer.score_points.
-    Poses are model-to-camera (R (B, 3, 3), t (B, 3) metres); boxes are pixels, gboxes feature cells."""
-    gboxes = np.asarray(gboxes, dtype=np.int32)
-    pt_off = flat_offsets(gboxes)
-    n_pts = int(pt_off[-1])
+    Poses are model-to-camera (R (B, 3, 3), t (B, 3) metres); boxes are pixels, gboxes feature cells.
+    The silhouette is the renderer's own (Renderer.silhouette): the mask kernel #2 will read."""
+    layout = PointLayout.of(boxes, gboxes, kernel_size, stride, renderer.device)
+    hits = renderer.silhouette(camera, R_m2c, t_m2c_m, layout)
     with wp.ScopedDevice(renderer.device):
-        out = wp.empty(n_pts, dtype=float)
-        offsets = wp.array(pt_off, dtype=wp.int32)
-        box_arr = wp.array(np.asarray(boxes, dtype=np.int32), dtype=wp.vec4i)
-        gbox_arr = wp.array(gboxes, dtype=wp.vec4i)
-        if renderer.method == "raster":
-            # The raster form's own silhouette: its mask is what kernel #2 will read.
-            hits = renderer.silhouette_hits(
-                camera, R_m2c, t_m2c_m, box_arr, gbox_arr, offsets, n_pts, kernel_size, stride
-            )
-            wp.launch(
-                rarity_at_hits,
-                dim=n_pts,
-                inputs=[hits, gbox_arr, offsets, len(gboxes), kernel_size, stride, ceiling],
-                outputs=[out],
-            )
-            return out, offsets
+        out = wp.empty(layout.n_points, dtype=float)
         wp.launch(
-            rarity_under_silhouette,
-            dim=n_pts,
-            inputs=[
-                renderer.wp_mesh.id,
-                renderer.pixel_rays(camera, R_m2c, t_m2c_m),  # the renderer's rays
-                box_arr,
-                gbox_arr,
-                offsets,
-                len(gboxes),
-                kernel_size,
-                stride,
-                ceiling,
-            ],
+            rarity_at_hits,
+            dim=layout.n_points,
+            inputs=[hits, layout.gbox, layout.pt_off, layout.n, kernel_size, stride, ceiling],
             outputs=[out],
         )
-    return out, offsets
+    return out, layout.pt_off
 
 
 def silhouette_bounds(
-    renderer: MeshRenderer,
+    renderer: Renderer,
     camera: Camera,
     R_m2c: np.ndarray,
     t_m2c_m: np.ndarray,

@@ -19,8 +19,11 @@ ESTIMATE = "perch_warp.estimate"
 SUBCOMMANDS = {
     "demo": ("perch_warp.demo", "run the whole pipeline on a scene the project makes itself (offline)"),
     "eval": ("perch_warp.eval.command", "evaluate on a BOP-format dataset (ADD-S, AUC, plots)"),
-    "synth": ("perch_warp.synth", "generate photorealistic synthetic BOP test scenes"),
-    "bench": ("perch_warp.bench", "time the reference workload, a ray-casting microbenchmark and its Open3D peer"),
+    "synth": ("perch_warp.synth.command", "generate photorealistic synthetic BOP test scenes"),
+    "bench": (
+        "perch_warp.bench.command",
+        "time the reference workload, a ray-casting microbenchmark and its Open3D peer",
+    ),
 }
 
 

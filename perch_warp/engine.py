@@ -14,9 +14,12 @@ from __future__ import annotations
 
 import time
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
+import tqdm
 import warp as wp
+from PIL import Image
 
 from . import search as searches
 from .camera import Camera
@@ -27,9 +30,9 @@ from .features import FeatureWeights
 from .image import check_rgb
 from .mesh import ObjectMesh
 from .peaks import top_location_candidates
-from .render import BoxProjector, MeshRenderer, auto_renderer
+from .render import BoxProjector, DeviceMesh, Renderer, auto_renderer, make_renderer
 from .resting import Rest
-from .result import Candidate, RestingChoice, Result
+from .result import Candidate, RestingChoice, Result, SearchInfo
 from .score import FeatureScorer, auto_conv
 from .score_map import ScoreMap, knowledge, score_map
 from .score_terms import parse_score
@@ -42,6 +45,14 @@ from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera, pose_matrix
 
 __all__ = ["SEARCHES", "Engine", "EngineConfig", "default_device"]
+
+
+class RendererChoice(NamedTuple):
+    """The renderer a search uses and, where --renderer auto's CPU rule ran, the median candidate box
+    (pixels) it compared the mesh's faces with."""
+
+    renderer: Renderer
+    median_box_px: float | None
 
 
 def default_device() -> str:
@@ -70,9 +81,9 @@ class Engine:
         self.mesh = mesh
         self.weights = weights
         t0 = time.perf_counter()
-        self.renderer = MeshRenderer(
-            mesh, self.device, "bvh" if self.config.renderer == "auto" else self.config.renderer
-        )
+        self.device_mesh = DeviceMesh(mesh, self.device)  # uploaded once, shared by both renderers
+        self._renderers: dict[str, Renderer] = {}
+        self.renderer_for(self.default_renderer)  # built now: BVH construction is not a search stage's
         conv = self.config.conv if self.config.conv != "auto" else auto_conv(self.device)
         self.score_name, self.terms = parse_score(self.config.score)  # perch_warp.score_terms
         self.scorer = FeatureScorer(
@@ -90,6 +101,22 @@ class Engine:
     def search(self) -> str:
         """The search this engine runs: the config's, with "auto" resolved for the device."""
         return self.config.search if self.config.search != "auto" else searches.auto_search(self.device)
+
+    @property
+    def default_renderer(self) -> str:
+        """The form of kernel #1 this engine renders with outside a search: the configured one, bvh for auto."""
+        return "bvh" if self.config.renderer == "auto" else self.config.renderer
+
+    @property
+    def renderer(self) -> Renderer:
+        """The renderer of `default_renderer` (a search may pick the other form: Result.info.renderer)."""
+        return self.renderer_for(self.default_renderer)
+
+    def renderer_for(self, method: str) -> Renderer:
+        """The renderer called `method` ("bvh" or "raster") for this mesh, built on first use and kept."""
+        if method not in self._renderers:
+            self._renderers[method] = make_renderer(method, self.device_mesh)
+        return self._renderers[method]
 
     def cpu_threads(self) -> int:
         """Threads scoring batches at once: 1 on a GPU (one stream), else the config's or one per core."""
@@ -114,13 +141,13 @@ class Engine:
         image_scale applied, the renderer chosen for `space` (--renderer auto; a point space by default)."""
         timings = {} if timings is None else timings
         image_rgb, camera = self._scaled(image_rgb, camera)
-        self._pick_renderer(camera, table, resting, space or SearchSpace((0.0, 0.0), (0.0, 0.0)))
-        return self._service(image_rgb, camera, table, resting, timings, bar)
+        choice = self._pick_renderer(camera, table, resting, space or SearchSpace((0.0, 0.0), (0.0, 0.0)))
+        return self._service(image_rgb, camera, table, resting, choice.renderer, timings, bar)
 
-    def _service(self, image_rgb, camera, table, resting, timings: dict, bar) -> ScoringService:
-        backends = Backends(self.renderer, self.scorer, self.boxes, self.weights, self.device)
+    def _service(self, image_rgb, camera, table, resting, renderer: Renderer, timings: dict, bar) -> ScoringService:
+        backends = Backends(self.scorer, self.boxes, self.weights, self.device)
         photo = photo_on_device(backends, self.config, self.terms, image_rgb, camera, timings)
-        args = (photo, camera, table, resting, self.renderer, timings, bar)
+        args = (photo, camera, table, resting, renderer, timings, bar)
         return ScoringService(backends, self.config, self.terms, *args)
 
     def estimate(
@@ -141,16 +168,16 @@ class Engine:
         Result.resting. `probe` (x_m, y_m, yaw_rad, table frame), for analysis only: after the search,
         the best pose and score within that pose's cell (one grid step either side at the refinement's
         resolution, not cut to the space) on the same photo, under `probe_resting` (default: the
-        winning resting pose), in info["probe"]; it never changes the answer."""
+        winning resting pose), in info.extra["probe"]; it never changes the answer."""
         if not isinstance(resting, RestingPose):
             return self._estimate_rests(image_rgb, camera, table, list(resting), space, progress, probe, probe_resting)
         timings: dict[str, float] = {}
         image_rgb, camera = self._scaled(image_rgb, camera)
-        renderer_info = self._pick_renderer(camera, table, resting, space)
+        choice = self._pick_renderer(camera, table, resting, space)
         bar = _bar(progress, f"search on {self.device}")
         t_start = time.perf_counter()
         try:
-            service = self._service(image_rgb, camera, table, resting, timings, bar)
+            service = self._service(image_rgb, camera, table, resting, choice.renderer, timings, bar)
             out, top = self._search(service, space)
             assessed = self._assess(service, space, out, top[0][:3], resting)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more.
@@ -163,7 +190,7 @@ class Engine:
             if bar is not None:
                 bar.close()
         timings["total"] = wall_s
-        return self._result(table, resting, space, out, top, timings, renderer_info, assessed)
+        return self._result(table, resting, space, out, top, timings, choice, assessed)
 
     def _search(self, service: ScoringService, space: SearchSpace) -> tuple[Outcome, list]:
         """The configured search's outcome and its top-k [(x_m, y_m, yaw_rad, score)], refined."""
@@ -204,41 +231,44 @@ class Engine:
         return smap, conf
 
     def _result(
-        self, table, resting, space: SearchSpace, out: Outcome, top: list, timings, renderer_info,
+        self, table, resting, space: SearchSpace, out: Outcome, top: list, timings, choice,
         assessed: tuple[ScoreMap, Confidence],
     ) -> Result:  # fmt: skip
         tx, ty, tyaw, _ = np.array(top).T  # table frame: metres, metres, radians
         R, tr = model_to_camera(table, resting, tx, ty, tyaw)
         cands = [Candidate(*c, pose_matrix(R[n], tr[n])) for n, c in enumerate(top)]
-        return self._result_of(cands, len(space), out, timings, renderer_info, space, assessed)
+        return self._result_of(cands, len(space), out, timings, choice, space, assessed)
 
     def _result_of(
-        self, cands: list, n: int, out: Outcome, timings, renderer_info, space, assessed: tuple[ScoreMap, Confidence]
+        self, cands: list, n: int, out: Outcome, timings, choice, space, assessed: tuple[ScoreMap, Confidence]
     ) -> Result:
         """The Result of a search over n candidates (space: its x, y, yaw grid; several resting poses: n is
         len(space) times their number)."""
         cfg = self.config
-        info = {
-            "weights": self.weights.source,
-            "stride_px": cfg.stride,
-            "alpha": cfg.alpha,
-            "clusters": cfg.clusters,
-            "seed": cfg.seed,
-            "score": self.score_name,
-            "search": self.search,
-            "search_option": cfg.search,  # as asked: "auto" or the search itself
-            **renderer_info,
-            "conv": self.scorer.conv,
-            "conv_option": cfg.conv,
-            "image_scale": cfg.image_scale,
-            "search_space": space.describe(),
-            "evaluated": out.evaluated,  # candidates scored (rendered and compared)
-            "batches": out.stats.batches,
-            "rays": out.stats.rays,  # pixels ray-cast by kernel #1 (the rendered boxes' areas)
-            # Batches scored at once; above 1 the per-batch stage timings are CPU seconds summed over threads.
-            "threads": self.cpu_threads(),
-            **out.extra,
-        }
+        info = SearchInfo(
+            weights=self.weights.source,
+            stride_px=cfg.stride,
+            alpha=cfg.alpha,
+            clusters=cfg.clusters,
+            seed=cfg.seed,
+            score=self.score_name,
+            search=self.search,
+            search_option=cfg.search,
+            renderer_option=cfg.renderer,
+            mesh_faces=int(len(self.mesh.faces)),
+            median_box_px=choice.median_box_px,
+            renderer=choice.renderer.name,
+            cull_back_faces=choice.renderer.cull_back_faces,
+            conv=self.scorer.conv,
+            conv_option=cfg.conv,
+            image_scale=cfg.image_scale,
+            search_space=space.describe(),
+            evaluated=out.evaluated,
+            batches=out.stats.batches,
+            rays=out.stats.rays,
+            threads=self.cpu_threads(),
+            extra=out.extra,
+        )
         n_scored = int(np.isfinite(out.scores).sum())
         smap, conf = assessed
         return Result(cands[0], cands, n, n_scored, timings, self.device, info, confidence=conf, heatmap=smap)
@@ -250,11 +280,11 @@ class Engine:
         timings: dict[str, float] = {}
         image_rgb, camera = self._scaled(image_rgb, camera)
         # The renderer is chosen from the first (most probable) pose's boxes: it changes speed, not images.
-        renderer_info = self._pick_renderer(camera, table, rests[0].pose, space)
+        choice = self._pick_renderer(camera, table, rests[0].pose, space)
         bar = _bar(progress, f"search on {self.device}")
         t_start = time.perf_counter()
         try:
-            first = self._service(image_rgb, camera, table, rests[0].pose, timings, bar)
+            first = self._service(image_rgb, camera, table, rests[0].pose, choice.renderer, timings, bar)
             services = [over_rests.with_rest(first, r.pose) for r in rests]
             outs = over_rests.search_all(services, space, self.search, [r.label for r in rests])
             top = over_rests.joint_top(outs, space, self.config)
@@ -282,7 +312,7 @@ class Engine:
         for x, y, yaw, sc, p in top:
             R, tr = model_to_camera(table, rests[p].pose, x, y, yaw)
             cands.append(Candidate(x, y, yaw, sc, pose_matrix(R[0], tr[0]), rests[p].label))
-        result = self._result_of(cands, len(space) * len(rests), out, timings, renderer_info, space, assessed)
+        result = self._result_of(cands, len(space) * len(rests), out, timings, choice, space, assessed)
         p = top[0][4]
         best = over_rests.per_rest_best(outs)
         result.resting = RestingChoice(rests[p], p, rests, best, [o.evaluated for o in outs])
@@ -308,7 +338,7 @@ class Engine:
         """Every candidate's silhouette bound and score (analysis of the pruned search; nothing pruned):
         arrays x_m, y_m, yaw_rad (table frame), bound, score; -inf where a candidate shows no feature point."""
         image_rgb, camera = self._scaled(image_rgb, camera)
-        service = self._service(image_rgb, camera, table, resting, {}, None)
+        service = self._service(image_rgb, camera, table, resting, self.renderer, {}, None)
         x, y, yaw = space.candidates()
         c = service.candidates(x, y, yaw)
         bounds, scores = np.full(len(x), -np.inf), np.full(len(x), -np.inf)
@@ -317,23 +347,20 @@ class Engine:
         service.score_some(c, c.live, scores, stats)
         return {"x_m": x, "y_m": y, "yaw_rad": yaw, "bound": bounds, "score": scores}
 
-    def _pick_renderer(self, camera: Camera, table: Table, resting: RestingPose, space: SearchSpace) -> dict:
-        """Set the renderer for this search (--renderer auto: render.auto_renderer, from the median
-        box of up to 256 of the space's candidates, drawn with a fixed seed); what ran, for the result."""
-        info: dict = {"renderer_option": self.config.renderer, "mesh_faces": int(len(self.mesh.faces))}
-        if self.config.renderer == "auto":
-            median = 0.0
-            if wp.get_device(self.device).is_cpu:
-                R, t = model_to_camera(table, resting, *space.sample(256, seed=0))
-                boxes = self.boxes(camera, R, t)
-                shown = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)  # -1: behind the camera, 0: outside the image
-                areas = boxes[shown, 2].astype(np.int64) * boxes[shown, 3]
-                median = float(np.median(areas)) if len(areas) else 0.0
-                info["median_box_px"] = median
-            self.renderer.use(auto_renderer(self.device, info["mesh_faces"], median))
-        info["renderer"] = self.renderer.method
-        info["cull_back_faces"] = self.renderer.cull_back_faces  # raster on a closed mesh only
-        return info
+    def _pick_renderer(self, camera: Camera, table: Table, resting: RestingPose, space: SearchSpace) -> RendererChoice:
+        """The renderer for this search (--renderer auto: render.auto_renderer, from the median box of
+        up to 256 of the space's candidates, drawn with a fixed seed, on the CPU); nothing is changed."""
+        if self.config.renderer != "auto":
+            return RendererChoice(self.renderer_for(self.config.renderer), None)
+        median = None
+        if wp.get_device(self.device).is_cpu:
+            R, t = model_to_camera(table, resting, *space.sample(256, seed=0))
+            boxes = self.boxes(camera, R, t)
+            shown = (boxes[:, 2] > 0) & (boxes[:, 3] > 0)  # -1: behind the camera, 0: outside the image
+            areas = boxes[shown, 2].astype(np.int64) * boxes[shown, 3]
+            median = float(np.median(areas)) if len(areas) else 0.0
+        method = auto_renderer(self.device, int(len(self.mesh.faces)), median or 0.0)
+        return RendererChoice(self.renderer_for(method), median)
 
     def _scaled(self, image_rgb: np.ndarray, camera: Camera) -> tuple[np.ndarray, Camera]:
         """The photo and camera the search runs on (image_scale applied)."""
@@ -346,15 +373,11 @@ def _bar(progress: bool, desc: str):
     """A progress bar over candidate poses (its total grows as searches add theirs), or None."""
     if not progress:
         return None
-    from tqdm import tqdm
-
-    return tqdm(total=0, unit="pose", desc=desc, leave=False)
+    return tqdm.tqdm(total=0, unit="pose", desc=desc, leave=False)
 
 
 def _rescale(image_rgb: np.ndarray, camera: Camera, factor: float) -> tuple[np.ndarray, Camera]:
     """The photo resized (area filter) and its camera with it; poses stay in metres, so results do not change frame."""
-    from PIL import Image
-
     if image_rgb.shape[:2] != (camera.height, camera.width):
         raise PerchError(
             f"image is {image_rgb.shape[1]}x{image_rgb.shape[0]} but the camera is {camera.width}x{camera.height}"

@@ -130,7 +130,7 @@ def load_caffe() -> FeatureWeights:
 
 
 def _torchvision_cache() -> Path:
-    import torch.hub
+    import torch.hub  # torch (seconds to import) only for the torchvision weights, here and below
 
     return Path(torch.hub.get_dir()) / "perch_warp" / "alexnet_conv1_torchvision.npz"
 

@@ -2,11 +2,14 @@
 
 from __future__ import annotations
 
+import warnings
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from .errors import PerchError
+from .outputs import atomic_write
 
 # Photos larger than this are refused from their header, before any pixel is decoded: a 8000 x 6000
 # photo (48 MP) already needs GBs once rendered and featurised, and a forged header claiming
@@ -17,10 +20,6 @@ MAX_IMAGE_PIXELS = 50_000_000
 def image_header_size(path: str | Path) -> tuple[int, int]:
     """(width, height) from the image header without decoding pixels; PerchError naming the file when it is
     missing, unreadable or larger than MAX_IMAGE_PIXELS."""
-    import warnings
-
-    from PIL import Image, UnidentifiedImageError
-
     path = Path(path)
     if not path.is_file():
         raise PerchError(f"image not found: {path}")
@@ -43,8 +42,6 @@ def image_header_size(path: str | Path) -> tuple[int, int]:
 
 def load_rgb(path: str | Path) -> np.ndarray:
     """An 8-bit RGB image (H, W, 3) uint8; greyscale/alpha are refused or dropped explicitly."""
-    from PIL import Image, UnidentifiedImageError
-
     path = Path(path)
     image_header_size(path)  # size checked before decoding
     try:
@@ -72,9 +69,5 @@ def check_rgb(arr: np.ndarray, name: str = "image") -> np.ndarray:
 
 def save_png(path: str | Path, rgb: np.ndarray) -> None:
     """Write atomically so that an interrupted run leaves no half-written picture (nor a stray temporary)."""
-    from PIL import Image
-
-    from .outputs import atomic_write
-
     pic = Image.fromarray(np.asarray(rgb, dtype=np.uint8))
     atomic_write(path, lambda f: pic.save(f, format="PNG"))

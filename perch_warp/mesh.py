@@ -66,7 +66,7 @@ class ObjectMesh:
 
     def hull_points_m(self) -> np.ndarray:
         """Convex-hull vertices (model frame, m): enough to bound every projection of the mesh."""
-        import trimesh
+        import trimesh  # not at the top: every command imports this module, trimesh takes ~0.5 s
 
         try:
             return np.asarray(trimesh.convex.convex_hull(self.vertices_m).vertices, dtype=np.float64)
@@ -104,7 +104,7 @@ def load_mesh(path: str | Path, units: str = "auto", untextured: bool = False) -
     untextured: search a mesh that has no material and no vertex colours at all in a uniform
     grey (never a mesh whose material or texture file is missing: that is an error).
     """
-    import trimesh
+    import trimesh  # see hull_points_m
 
     path = Path(path)
     if not path.is_file():

@@ -99,7 +99,7 @@ def folder_lock(folder: str | Path, what: str = "output folder") -> Iterator[Pat
     A second process (or a second open in this one) is refused at once with the holder's pid.
     The lock dies with its process (kill -9 included), so a stale lock file never blocks a rerun.
     """
-    import fcntl
+    import fcntl  # POSIX only: imported here so that this module (which every command imports) loads anywhere
 
     folder = Path(folder)
     lock_path = folder / LOCK_FILE

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from PIL import Image, ImageDraw
 
 ESTIMATE_COLOR = (255, 0, 255)
 TRUTH_COLOR = (0, 255, 0)
@@ -45,8 +46,6 @@ def overlay_rendering(
 
 def caption(image_rgb: np.ndarray, lines: list[str]) -> np.ndarray:
     """The picture with a strip of text below it (what a person wants to read next to it)."""
-    from PIL import Image, ImageDraw
-
     h, w = image_rgb.shape[:2]
     strip = 14 * len(lines) + 8
     canvas = Image.new("RGB", (w, h + strip), (20, 20, 20))

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import numpy as np
+from sklearn.cluster import KMeans
 
 
 def rarity_from_labels(labels: np.ndarray, n_clusters: int, mode: str = "max") -> np.ndarray:
@@ -17,8 +18,6 @@ def rarity_from_labels(labels: np.ndarray, n_clusters: int, mode: str = "max") -
 def kmeans_labels(features: np.ndarray, n_clusters: int = 20, seed: int = 0, inits: int = 1) -> np.ndarray:
     """k-means cluster of each feature vector (N, C), the best of `inits` initialisations;
     deterministic for a seed."""
-    from sklearn.cluster import KMeans
-
     n_clusters = int(min(n_clusters, len(features)))
     km = KMeans(n_clusters=n_clusters, n_init=inits, random_state=seed)
     return km.fit_predict(np.asarray(features, dtype=np.float32)).astype(np.int64)

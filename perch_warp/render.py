@@ -5,21 +5,29 @@ at the first surface its ray meets. Two ways to find that surface, with the same
 the same ray-triangle test: "bvh" queries Warp's mesh BVH per ray (kernels/render.py),
 "raster" lets each triangle test the rays its projection covers (kernels/raster.py),
 which is faster on a CPU (docs/performance.md, "Raster form of kernel #1").
+
+Each form is a `Renderer` class (BvhRenderer, RasterRenderer) with `render()` (kernel #1 for a
+batch) and `silhouette()` (the feature points its mask covers, for the bound); both share one
+`DeviceMesh` (vertices, faces and the MeshLook appearance struct, uploaded once per mesh).
 """
 
 from __future__ import annotations
 
 import functools
+from abc import ABC, abstractmethod
 from dataclasses import dataclass
+from typing import ClassVar
 
 import numpy as np
+import trimesh
 import warp as wp
 
 from .camera import Camera
 from .errors import PerchError
+from .kernels import bound as bound_kernels
 from .kernels import boxes as box_kernels
 from .kernels import raster as raster_kernels
-from .kernels.render import PixelRays, render_boxes
+from .kernels.render import MeshLook, PixelRays, render_boxes
 from .mesh import ObjectMesh
 
 # Candidates closer than this to the camera plane cannot be rendered sensibly.
@@ -50,8 +58,6 @@ def is_closed_surface(vertices_m: np.ndarray, faces: np.ndarray) -> bool:
     split vertices, not the surface), close a volume with outward winding: every edge shared by
     exactly two faces in opposite directions, positive signed volume. Then, seen from outside,
     the nearest hit of any ray lies on a face turned towards it, and back faces can be skipped."""
-    import trimesh
-
     v = np.asarray(vertices_m, dtype=np.float32)
     uniq, inverse = np.unique(v, axis=0, return_inverse=True)
     tm = trimesh.Trimesh(uniq.astype(np.float64), inverse.reshape(-1)[np.asarray(faces)], process=False)
@@ -162,44 +168,86 @@ def pixel_rays(camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, device: s
     return rays
 
 
-class MeshRenderer:
-    """A mesh and its appearance uploaded once to a Warp device (model frame, metres), rendered
-    by `method`: "bvh" (kernels/render.py) or "raster" (kernels/raster.py), the same images."""
+@dataclass
+class PointLayout:
+    """Candidates' feature points on the device, in kernel #2's flat layout (kernels/features.py:
+    feature_point): candidate c owns points [pt_off[c], pt_off[c + 1]) of its grid box gbox[c], row by
+    row; point (gx, gy) is pixel (ks // 2 + stride * gx, ks // 2 + stride * gy) of the rendered box box[c]."""
 
-    def __init__(self, mesh: ObjectMesh, device: str, method: str = "bvh"):
+    box: wp.array  # (B,) vec4i pixel boxes (x0, y0, w, h)
+    gbox: wp.array  # (B,) vec4i feature-grid boxes (gx0, gy0, gw, gh)
+    pt_off: wp.array  # (B + 1,) int32 flat offsets
+    n_points: int
+    kernel_size: int
+    stride: int
+
+    @property
+    def n(self) -> int:
+        return len(self.box)
+
+    @staticmethod
+    def of(boxes: np.ndarray, gboxes: np.ndarray, kernel_size: int, stride: int, device: str) -> PointLayout:
+        """The layout of pixel boxes (B, 4) and their grid boxes (B, 4) (score.grid_boxes), uploaded."""
+        gboxes = np.asarray(gboxes, dtype=np.int32)
+        pt_off = flat_offsets(gboxes)
+        with wp.ScopedDevice(device):
+            box = wp.array(np.asarray(boxes, dtype=np.int32), dtype=wp.vec4i)
+            return PointLayout(
+                box,
+                wp.array(gboxes, dtype=wp.vec4i),
+                wp.array(pt_off, dtype=wp.int32),
+                int(pt_off[-1]),
+                kernel_size,
+                stride,
+            )
+
+
+class DeviceMesh:
+    """A mesh and its appearance uploaded once to a Warp device (model frame, metres), shared by
+    every renderer of that mesh."""
+
+    def __init__(self, mesh: ObjectMesh, device: str):
         self.device = device
         self.mesh = mesh
-        self.use(method)
         with wp.ScopedDevice(device):
             self.points = wp.array(mesh.vertices_m.astype(np.float32), dtype=wp.vec3)
             self.indices = wp.array(mesh.faces.reshape(-1).astype(np.int32), dtype=wp.int32)
-            self.wp_mesh = wp.Mesh(points=self.points, indices=self.indices)
+            look = MeshLook()
+            look.indices = self.indices
             if mesh.texture is not None:
-                self.use_texture = 1
-                self.uvs = wp.array(mesh.uv.astype(np.float32), dtype=wp.vec2)
-                self.texture = wp.array(mesh.texture.astype(np.float32), dtype=wp.vec3)
-                self.colors = wp.zeros(1, dtype=wp.vec3)
+                look.use_texture = 1
+                look.uvs = wp.array(mesh.uv.astype(np.float32), dtype=wp.vec2)
+                look.texture = wp.array(mesh.texture.astype(np.float32), dtype=wp.vec3)
+                look.colors = wp.zeros(1, dtype=wp.vec3)
             else:
-                self.use_texture = 0
-                self.uvs = wp.zeros(1, dtype=wp.vec2)
-                self.texture = wp.zeros((1, 1), dtype=wp.vec3)
-                self.colors = wp.array(mesh.vertex_colors.astype(np.float32), dtype=wp.vec3)
-
-    def use(self, method: str) -> None:
-        """Render with `method` from now on: "bvh" or "raster" (the same images)."""
-        if method not in ("bvh", "raster"):
-            raise PerchError(f"renderer method must be bvh or raster, got {method!r}")
-        self.method = method
+                look.use_texture = 0
+                look.uvs = wp.zeros(1, dtype=wp.vec2)
+                look.texture = wp.zeros((1, 1), dtype=wp.vec3)
+                look.colors = wp.array(mesh.vertex_colors.astype(np.float32), dtype=wp.vec3)
+            self.look = look
 
     @functools.cached_property
     def closed_surface(self) -> bool:
         """The mesh closes a volume, outward (is_closed_surface); computed on first use."""
         return is_closed_surface(self.mesh.vertices_m, self.mesh.faces)
 
+
+class Renderer(ABC):
+    """One form of kernel #1 over a DeviceMesh. `render` colours candidates' boxes; `silhouette` says
+    which feature points the same render's mask covers (what the pruned search's bound needs). Every
+    form casts the same pixel rays (pixel_rays) with the same ray-triangle test: the same images."""
+
+    name: ClassVar[str]
+
+    def __init__(self, dmesh: DeviceMesh):
+        self.dmesh = dmesh
+        self.device = dmesh.device
+        self.mesh = dmesh.mesh
+
     @property
     def cull_back_faces(self) -> bool:
-        """Only the raster form skips faces, and only where that cannot change a pixel."""
-        return self.method == "raster" and self.closed_surface
+        """Whether this form skips faces turned away from the camera (only where that cannot change a pixel)."""
+        return False
 
     def pixel_rays(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> PixelRays:
         """The candidates' pixel rays on this device, for every kernel that casts them (model-to-camera
@@ -207,7 +255,8 @@ class MeshRenderer:
         return pixel_rays(camera, R_m2c, t_m2c_m, self.device)
 
     def render(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, boxes: np.ndarray) -> RenderedBatch:
-        """Ray-cast each candidate's box (boxes (B, 4) with w, h > 0); returns device arrays."""
+        """Ray-cast each candidate's box (boxes (B, 4) pixels, w, h > 0; poses model to camera, metres):
+        colour and mask per box pixel, device arrays in the layout of flat_offsets(boxes)."""
         boxes = np.asarray(boxes, dtype=np.int32)
         pix_off = flat_offsets(boxes)
         n_pix = int(pix_off[-1])
@@ -220,77 +269,17 @@ class MeshRenderer:
                 pix_off=wp.array(pix_off, dtype=wp.int32),
                 n=len(boxes),
             )
-            if self.method == "bvh":
-                appearance = [self.indices, self.uvs, self.texture, self.colors, self.use_texture]
-                wp.launch(
-                    render_boxes,
-                    dim=n_pix,
-                    inputs=[self.wp_mesh.id, *appearance, rays, batch.box, batch.pix_off, batch.n],
-                    outputs=[batch.rgb, batch.mask],
-                )
-                return batch
-            key = wp.full(n_pix, raster_kernels.NO_HIT, dtype=wp.int64)
-            self._per_face(raster_kernels.splat_faces, batch.n, rays, [batch.box, batch.pix_off], key)
-            uv = wp.empty(n_pix if self.use_texture else 1, dtype=wp.vec2)
-            wp.launch(
-                raster_kernels.locate_hits,
-                dim=n_pix,
-                inputs=[self.points, self.indices, self.uvs, self.colors, self.use_texture, rays]
-                + [batch.box, batch.pix_off, batch.n, key],
-                outputs=[uv, batch.rgb, batch.mask],
-            )
-            if self.use_texture:
-                wp.launch(
-                    raster_kernels.sample_hits, dim=n_pix, inputs=[self.texture, uv, batch.mask], outputs=[batch.rgb]
-                )
+            self._render(rays, batch, n_pix)
         return batch
 
-    def _per_face(self, kernel, n_cand: int, rays: PixelRays, per_candidate: list, out: wp.array) -> None:
-        """Launch a raster kernel over (candidate, face) for n_cand candidates, in chunks of at most
-        VERTEX_SLOTS projected vertices: project_points, then `kernel` with the mesh, projections,
-        rays (pixel_rays), the arrays `per_candidate`, the chunk's first candidate and the culling
-        flag; it writes `out`."""
-        n_points = len(self.points)
-        chunk = max(1, VERTEX_SLOTS // n_points)
-        uvz = wp.empty((min(chunk, n_cand), n_points), dtype=wp.vec3)
-        for c0 in range(0, n_cand, chunk):
-            m = min(chunk, n_cand - c0)
-            wp.launch(
-                raster_kernels.project_points,
-                dim=(m, n_points),
-                inputs=[self.points, rays, c0, MIN_DEPTH_M],
-                outputs=[uvz],
-            )
-            wp.launch(
-                kernel,
-                dim=(m, len(self.indices) // 3),
-                inputs=[self.points, self.indices, uvz, rays, *per_candidate, c0, MIN_DEPTH_M]
-                + [int(self.cull_back_faces)],
-                outputs=[out],
-            )
+    @abstractmethod
+    def _render(self, rays: PixelRays, batch: RenderedBatch, n_pix: int) -> None:
+        """Fill batch.rgb and batch.mask (n_pix pixels) from `rays`, on this device (scoped)."""
 
-    def silhouette_hits(
-        self,
-        camera: Camera,
-        R_m2c: np.ndarray,
-        t_m2c_m: np.ndarray,
-        boxes: wp.array,
-        gboxes: wp.array,
-        pt_off: wp.array,
-        n_points: int,
-        kernel_size: int,
-        stride: int,
-    ) -> wp.array:
-        """Raster form only: uint8 per feature point (kernel #2's layout), 1 where the point's pixel ray
-        hits the mesh: exactly the points this renderer's mask covers."""
-        if self.method != "raster":
-            raise PerchError("silhouette_hits needs the raster form (the bvh form's bound casts any-hit rays)")
-        rays = self.pixel_rays(camera, R_m2c, t_m2c_m)
-        with wp.ScopedDevice(self.device):
-            hits = wp.zeros(n_points, dtype=wp.uint8)
-            per_candidate = [boxes, gboxes, pt_off, kernel_size, stride]
-            self._per_face(raster_kernels.splat_points, len(R_m2c), rays, per_candidate, hits)
-        return hits
+    @abstractmethod
+    def silhouette(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, layout: PointLayout) -> wp.array:
+        """uint8 per feature point of `layout`: 1 where the point's pixel ray hits the mesh inside its
+        candidate's box, i.e. exactly where render()'s mask covers the point, else 0."""
 
     def render_image(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """The whole image for one pose: RGB float32 (H, W, 3) in [0, 1] and mask bool (H, W)."""
@@ -299,3 +288,113 @@ class MeshRenderer:
         rgb = b.rgb.numpy().reshape(camera.height, camera.width, 3)
         mask = b.mask.numpy().reshape(camera.height, camera.width).astype(bool)
         return rgb, mask
+
+
+class BvhRenderer(Renderer):
+    """Kernel #1 as one closest-hit query of Warp's mesh BVH per pixel ray (kernels/render.py); its
+    silhouette casts any-hit rays through the same BVH (kernels/bound.py: anyhit_points)."""
+
+    name = "bvh"
+
+    def __init__(self, dmesh: DeviceMesh):
+        super().__init__(dmesh)
+        with wp.ScopedDevice(self.device):
+            self.wp_mesh = wp.Mesh(points=dmesh.points, indices=dmesh.indices)
+
+    def _render(self, rays: PixelRays, batch: RenderedBatch, n_pix: int) -> None:
+        wp.launch(
+            render_boxes,
+            dim=n_pix,
+            inputs=[self.wp_mesh.id, self.dmesh.look, rays, batch.box, batch.pix_off, batch.n],
+            outputs=[batch.rgb, batch.mask],
+        )
+
+    def silhouette(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, layout: PointLayout) -> wp.array:
+        rays = self.pixel_rays(camera, R_m2c, t_m2c_m)
+        with wp.ScopedDevice(self.device):
+            hits = wp.empty(layout.n_points, dtype=wp.uint8)
+            wp.launch(
+                bound_kernels.anyhit_points,
+                dim=layout.n_points,
+                inputs=[self.wp_mesh.id, rays, layout.box, layout.gbox, layout.pt_off, layout.n]
+                + [layout.kernel_size, layout.stride],
+                outputs=[hits],
+            )
+        return hits
+
+
+class RasterRenderer(Renderer):
+    """Kernel #1 with each triangle testing the pixel rays its projection covers (kernels/raster.py);
+    faster on a CPU (docs/performance.md, "Raster form of kernel #1"). Its silhouette is the same face
+    tests at the feature points' pixels (kernels/raster.py: splat_points)."""
+
+    name = "raster"
+
+    @property
+    def cull_back_faces(self) -> bool:
+        """Back faces are skipped on a closed, outward mesh: seen from outside, a ray's nearest hit is
+        on a front face; an open mesh keeps them."""
+        return self.dmesh.closed_surface
+
+    def _render(self, rays: PixelRays, batch: RenderedBatch, n_pix: int) -> None:
+        look = self.dmesh.look
+        key = wp.full(n_pix, raster_kernels.NO_HIT, dtype=wp.int64)
+        self._per_face(raster_kernels.splat_faces, batch.n, rays, [batch.box, batch.pix_off], key)
+        uv = wp.empty(n_pix if look.use_texture else 1, dtype=wp.vec2)
+        wp.launch(
+            raster_kernels.locate_hits,
+            dim=n_pix,
+            inputs=[self.dmesh.points, look, rays, batch.box, batch.pix_off, batch.n, key],
+            outputs=[uv, batch.rgb, batch.mask],
+        )
+        if look.use_texture:
+            wp.launch(raster_kernels.sample_hits, dim=n_pix, inputs=[look, uv, batch.mask], outputs=[batch.rgb])
+
+    def silhouette(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, layout: PointLayout) -> wp.array:
+        rays = self.pixel_rays(camera, R_m2c, t_m2c_m)
+        with wp.ScopedDevice(self.device):
+            hits = wp.zeros(layout.n_points, dtype=wp.uint8)
+            per_candidate = [layout.box, layout.gbox, layout.pt_off, layout.kernel_size, layout.stride]
+            self._per_face(raster_kernels.splat_points, layout.n, rays, per_candidate, hits)
+        return hits
+
+    def _per_face(self, kernel, n_cand: int, rays: PixelRays, per_candidate: list, out: wp.array) -> None:
+        """Launch a raster kernel over (candidate, face) for n_cand candidates, in chunks of at most
+        VERTEX_SLOTS projected vertices: project_points, then `kernel` with the mesh, projections,
+        rays (pixel_rays), the arrays `per_candidate`, the chunk's first candidate and the culling
+        flag; it writes `out`."""
+        points, indices = self.dmesh.points, self.dmesh.indices
+        n_points = len(points)
+        chunk = max(1, VERTEX_SLOTS // n_points)
+        uvz = wp.empty((min(chunk, n_cand), n_points), dtype=wp.vec3)
+        for c0 in range(0, n_cand, chunk):
+            m = min(chunk, n_cand - c0)
+            wp.launch(
+                raster_kernels.project_points,
+                dim=(m, n_points),
+                inputs=[points, rays, c0, MIN_DEPTH_M],
+                outputs=[uvz],
+            )
+            wp.launch(
+                kernel,
+                dim=(m, len(indices) // 3),
+                inputs=[points, indices, uvz, rays, *per_candidate, c0, MIN_DEPTH_M, int(self.cull_back_faces)],
+                outputs=[out],
+            )
+
+
+RENDERER_CLASSES: dict[str, type[Renderer]] = {"bvh": BvhRenderer, "raster": RasterRenderer}
+
+
+def make_renderer(method: str, dmesh: DeviceMesh) -> Renderer:
+    """The renderer called `method` ("bvh" or "raster") over an uploaded mesh."""
+    if method not in RENDERER_CLASSES:
+        raise PerchError(f"renderer method must be bvh or raster, got {method!r}")
+    return RENDERER_CLASSES[method](dmesh)
+
+
+def mesh_renderer(mesh: ObjectMesh, device: str, method: str = "bvh") -> Renderer:
+    """A renderer of its own for `mesh` on `device` (the mesh uploaded for it alone; the engine shares one)."""
+    if method not in RENDERER_CLASSES:
+        raise PerchError(f"renderer method must be bvh or raster, got {method!r}")
+    return RENDERER_CLASSES[method](DeviceMesh(mesh, device))

@@ -19,19 +19,19 @@ def renderer_line(result) -> str:
     from .render import RASTER_FACES_PER_PIXEL  # imports Warp: not at the top, which the CLI imports for every command
 
     info = result.info
-    method = info["renderer"]
+    method = info.renderer
     why = ""
-    if info.get("renderer_option") == "auto":
+    if info.renderer_option == "auto":
         why = f" (auto on {result.device}"
-        if "median_box_px" in info:
+        if info.median_box_px is not None:
             rel = "<=" if method == "raster" else ">"
             why += (
-                f": {info['mesh_faces']:,} faces {rel} {RASTER_FACES_PER_PIXEL} x the median candidate box, "
-                f"{info['median_box_px']:,.0f} px"
+                f": {info.mesh_faces:,} faces {rel} {RASTER_FACES_PER_PIXEL} x the median candidate box, "
+                f"{info.median_box_px:,.0f} px"
             )
         why += ")"
     if method == "raster":
-        faces = "closed mesh: back faces skipped" if info["cull_back_faces"] else "open mesh: every face tested"
+        faces = "closed mesh: back faces skipped" if info.cull_back_faces else "open mesh: every face tested"
         return f"renderer: raster{why}, {faces}"
     return f"renderer: bvh{why}"
 
@@ -39,9 +39,9 @@ def renderer_line(result) -> str:
 def conv_line(result) -> str:
     """Which form of kernel #2's convolution ran, and whether auto chose it."""
     info = result.info
-    how = {"torch": "torch conv2d on each candidate's crop", "warp": "Warp kernel, point by point"}[info["conv"]]
-    why = f" (auto on {result.device})" if info.get("conv_option") == "auto" else ""
-    return f"features: conv1 by {how}{why}; score: {info.get('score', 'thesis')}"
+    how = {"torch": "torch conv2d on each candidate's crop", "warp": "Warp kernel, point by point"}[info.conv]
+    why = f" (auto on {result.device})" if info.conv_option == "auto" else ""
+    return f"features: conv1 by {how}{why}; score: {info.score}"
 
 
 def write_json_atomic(path: str | Path, data: dict) -> None:
@@ -52,7 +52,7 @@ def write_json_atomic(path: str | Path, data: dict) -> None:
 def timing_line(result) -> str:
     """Seconds per stage; with several CPU threads the per-batch stages overlap, and the line says so."""
     line = "time: " + ", ".join(f"{k} {v:.2f} s" for k, v in result.timings_s.items())
-    threads = result.info.get("threads", 1)
+    threads = result.info.threads
     if threads > 1:
         line += f" (batch stages: CPU s summed over {threads} threads; total: wall)"
     return line
@@ -61,17 +61,17 @@ def timing_line(result) -> str:
 def search_summary(result) -> str:
     """One line: how many of the space's candidates the search scored, and why not all."""
     info = result.info
-    chosen = f" (auto on {result.device})" if info.get("search_option") == "auto" else ""
-    line = f"search: {info['search']}{chosen}, scored {info['evaluated']:,} of {result.n_candidates:,} candidates"
-    if info["search"] == "pruned":
-        k = info["k"]  # not len(top_k): the refined pose may replace a runner-up
-        if info["evaluated"] < info["bounded"]:
-            line += f" ({info['bounded']:,} bounded by their silhouettes; the rest cannot reach the top {k})"
+    chosen = f" (auto on {result.device})" if info.search_option == "auto" else ""
+    line = f"search: {info.search}{chosen}, scored {info.evaluated:,} of {result.n_candidates:,} candidates"
+    if info.search == "pruned":
+        k = info.extra["k"]  # not len(top_k): the refined pose may replace a runner-up
+        if info.evaluated < info.extra["bounded"]:
+            line += f" ({info.extra['bounded']:,} bounded by their silhouettes; the rest cannot reach the top {k})"
         else:
             line += f" (every silhouette bound reached the top {k}: nothing pruned)"
-    elif info["search"] == "coarse-to-fine":
+    elif info.search == "coarse-to-fine":
         line += " (a pyramid: may miss the exhaustive optimum)"
-    ref = info.get("refine")
+    ref = info.extra.get("refine")
     if ref is not None:
         line += (
             f"; refined below the grid: the best pose's cell at {ref['step_xy_m'] * 1000:.3g} mm / "

@@ -1,10 +1,16 @@
-"""What a search returns, and its JSON form (metres and radians inside, BOP's mm beside)."""
+"""What a search returns, and its JSON form (metres and radians inside, BOP's mm beside).
+
+`Result.info` is a `SearchInfo`: the method's settings, what ran (search, renderer, conv form) and what
+it cost, as typed fields; the search's own facts (pruning counts, pyramid levels, "refine", "probe")
+stay in its `extra` dict because each search has its own. `Result.to_dict()` is the --out JSON: the
+fixed fields in a fixed order, then `extra`'s keys, at the top level beside "pose" and "top_k".
+"""
 
 from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -72,6 +78,73 @@ class RestingChoice:
 
 
 @dataclass
+class SearchInfo:
+    """How a search ran: its settings, the forms of kernels #1 and #2 chosen, and its counters."""
+
+    weights: str  # where the conv1 weights came from (FeatureWeights.source)
+    stride_px: int  # feature-grid stride, pixels
+    alpha: float  # occlusion limit: top-α share of the feature points averaged
+    clusters: int  # k-means clusters of the rarity
+    seed: int  # k-means seed
+    score: str  # the score's name (perch_warp.score_terms)
+    search: str  # the search that ran ("auto" resolved)
+    search_option: str  # as asked: "auto" or the search itself
+    renderer_option: str  # --renderer as asked: auto, bvh or raster
+    mesh_faces: int
+    median_box_px: float | None  # --renderer auto on the CPU: the rule's median candidate box; else None
+    renderer: str  # the form of kernel #1 that ran: bvh or raster
+    cull_back_faces: bool  # raster on a closed mesh only
+    conv: str  # the form of kernel #2's convolution that ran: warp or torch
+    conv_option: str
+    image_scale: float
+    search_space: str  # SearchSpace.describe()
+    evaluated: int  # candidates scored (rendered and compared)
+    batches: int
+    rays: int  # pixels ray-cast by kernel #1 (the rendered boxes' areas)
+    # Batches scored at once; above 1 the per-batch stage timings are CPU seconds summed over threads.
+    threads: int
+    extra: dict[str, Any] = field(default_factory=dict)  # the search's own facts, "refine", "probe"
+
+    def to_dict(self) -> dict:
+        """The JSON keys of the result's top level, in this order; median_box_px only when the rule ran."""
+        out = {
+            "weights": self.weights,
+            "stride_px": self.stride_px,
+            "alpha": self.alpha,
+            "clusters": self.clusters,
+            "seed": self.seed,
+            "score": self.score,
+            "search": self.search,
+            "search_option": self.search_option,
+            "renderer_option": self.renderer_option,
+            "mesh_faces": self.mesh_faces,
+        }
+        if self.median_box_px is not None:
+            out["median_box_px"] = self.median_box_px
+        out.update(
+            renderer=self.renderer,
+            cull_back_faces=self.cull_back_faces,
+            conv=self.conv,
+            conv_option=self.conv_option,
+            image_scale=self.image_scale,
+            search_space=self.search_space,
+            evaluated=self.evaluated,
+            batches=self.batches,
+            rays=self.rays,
+            threads=self.threads,
+        )
+        return {**out, **self.extra}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> SearchInfo:
+        """The inverse of to_dict (a result JSON's top level; keys of neither kind are left out)."""
+        names = [f for f in cls.__dataclass_fields__ if f != "extra"]
+        fixed = {k: d.get(k) for k in names}
+        skip = {*names, "pose", "top_k", "n_candidates", "n_scored", "timings_s", "device"}
+        return cls(**fixed, extra={k: v for k, v in d.items() if k not in skip})
+
+
+@dataclass
 class Result:
     """The best pose on the table, the runners-up, and what it took."""
 
@@ -81,7 +154,7 @@ class Result:
     n_scored: int
     timings_s: dict[str, float]
     device: str
-    info: dict = field(default_factory=dict)
+    info: SearchInfo
     # The resting pose that won, in a search over several (Engine.estimate given a list); else None.
     resting: RestingChoice | None = None
     # How sure the answer is (perch_warp.confidence) and the best score over yaw per table cell
@@ -122,6 +195,6 @@ class Result:
             "timings_s": self.timings_s,
             "device": self.device,
             "confidence": None if self.confidence is None else self.confidence.to_dict(),
-            **self.info,
+            **self.info.to_dict(),
             **({"resting": self.resting.to_dict()} if self.resting is not None else {}),
         }

@@ -37,6 +37,8 @@ def auto_conv(device: str) -> str:
 def torch_threads(n: int):
     """torch's intra-op threads set to n for the block, then restored. The engine scores batches on its
     own threads; each batch's conv2d calls then run on that batch's thread alone."""
+    # torch is imported where the torch form runs, here and below: a GPU search (conv "warp") never
+    # needs it, and it takes seconds to import.
     import torch
 
     before = torch.get_num_threads()

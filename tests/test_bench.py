@@ -131,8 +131,8 @@ def test_engine_counts_the_rendered_box_areas(random_weights):
     R, t = model_to_camera(sc.table, sc.resting, x, y, yaw)
     boxes = project_boxes(sc.camera, sc.mesh.vertices_m, R, t)
     assert np.all(boxes[:, 2:] > 0)
-    assert one.info["rays"] == int((boxes[:, 2].astype(np.int64) * boxes[:, 3]).sum())
-    assert many.info["batches"] > one.info["batches"] and many.info["rays"] == one.info["rays"]
+    assert one.info.rays == int((boxes[:, 2].astype(np.int64) * boxes[:, 3]).sum())
+    assert many.info.batches > one.info.batches and many.info.rays == one.info.rays
 
 
 def test_bench_writes_the_promised_report(shared, caffe_weights, tmp_path, monkeypatch, capsys):

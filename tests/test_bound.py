@@ -112,10 +112,10 @@ def test_pruned_search_returns_the_exhaustive_top_k_scoring_fewer(scene, caffe_w
     assert [(k.x_m, k.y_m, k.yaw_rad, k.score) for k in pruned.top_k] == [
         (k.x_m, k.y_m, k.yaw_rad, k.score) for k in full.top_k
     ]
-    info = pruned.info
+    info = pruned.info.to_dict()  # the --out JSON's keys
     assert info["bounded"] == len(space) and info["scored"] == info["evaluated"] == pruned.n_scored
     assert info["rounds"] > 1 and info["scored"] < len(space)
-    assert info["bound_rays"] > 0 and info["rays"] < full.info["rays"]
+    assert info["bound_rays"] > 0 and info["rays"] < full.info.rays
     assert "bound" in pruned.timings_s
 
 
@@ -158,7 +158,7 @@ def test_pyramid_bounds_change_nothing_but_the_work(scene, caffe_weights):
     assert [(k.x_m, k.y_m, k.yaw_rad, k.score) for k in bounded.top_k] == [
         (k.x_m, k.y_m, k.yaw_rad, k.score) for k in plain.top_k
     ]
-    assert bounded.info["evaluated"] < plain.info["evaluated"] and "bound" in bounded.timings_s
+    assert bounded.info.evaluated < plain.info.evaluated and "bound" in bounded.timings_s
 
 
 class _RecordingBar:
@@ -191,10 +191,10 @@ def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(sce
         scene.image, scene.camera, scene.table, scene.resting, _space(scene), progress=True
     )
     (bar,) = bars
-    assert bar.total == bar.n == r.info["bounded"]
-    assert r.info["scored"] < r.info["bounded"] and r.info["rounds"] > 1
+    assert bar.total == bar.n == r.info.extra["bounded"]
+    assert r.info.extra["scored"] < r.info.extra["bounded"] and r.info.extra["rounds"] > 1
     # One update per round: a candidate ruled out is counted in the round that rules it out, none at the end.
-    assert len(bar.seen) == r.info["rounds"]
+    assert len(bar.seen) == r.info.extra["rounds"]
     assert bar.seen[-1] == bar.total
 
 
@@ -237,4 +237,4 @@ def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights):
     a, b = runs["exhaustive"], runs["pruned"]
     assert [(c.x_m, c.y_m, c.yaw_rad) for c in a.top_k] == [(c.x_m, c.y_m, c.yaw_rad) for c in b.top_k]
     assert np.allclose([c.score for c in a.top_k], [c.score for c in b.top_k], rtol=0, atol=1e-9)
-    assert b.info["scored"] < len(space) and a.info["score"] == b.info["score"] == parse_score(score)[0]
+    assert b.info.extra["scored"] < len(space) and a.info.score == b.info.score == parse_score(score)[0]

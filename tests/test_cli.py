@@ -173,8 +173,9 @@ def test_timing_line_says_when_stage_times_are_summed_over_threads():
 
     from perch_warp.report import timing_line
 
-    one = SimpleNamespace(timings_s={"render": 3.0, "total": 3.5}, info={"threads": 1})
-    two = SimpleNamespace(timings_s={"render": 3.0, "total": 1.75}, info={"threads": 2})
+    # Stand-ins for a Result and its SearchInfo: timing_line reads timings_s and info.threads only.
+    one = SimpleNamespace(timings_s={"render": 3.0, "total": 3.5}, info=SimpleNamespace(threads=1))
+    two = SimpleNamespace(timings_s={"render": 3.0, "total": 1.75}, info=SimpleNamespace(threads=2))
     assert timing_line(one) == "time: render 3.00 s, total 3.50 s"
     assert timing_line(two).endswith("(batch stages: CPU s summed over 2 threads; total: wall)")
 

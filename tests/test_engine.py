@@ -59,7 +59,7 @@ def test_same_answer_twice_and_for_any_batch_size(scene, random_weights):
     a = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(refine=False)).estimate(*args)
     b = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(refine=False)).estimate(*args)
     c = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(batch_pixels=5000, refine=False)).estimate(*args)
-    assert c.info["batches"] > a.info["batches"]
+    assert c.info.batches > a.info.batches
     for other in (b, c):
         assert [(k.x_m, k.y_m, k.yaw_rad) for k in other.top_k] == [(k.x_m, k.y_m, k.yaw_rad) for k in a.top_k]
         assert np.allclose([k.score for k in other.top_k], [k.score for k in a.top_k], rtol=0, atol=1e-6)
@@ -77,9 +77,9 @@ def test_cpu_threads_give_the_same_scores_as_one(scene, random_weights):
         return Engine(scene.mesh, random_weights, DEVICE, config).estimate(*args)
 
     one, two = run(1), run(2)
-    assert one.info["batches"] > 2 and (two.info["batches"], two.info["rays"]) == (
-        one.info["batches"],
-        one.info["rays"],
+    assert one.info.batches > 2 and (two.info.batches, two.info.rays) == (
+        one.info.batches,
+        one.info.rays,
     )
     # Every candidate, bit for bit and in the same order.
     assert [(k.x_m, k.y_m, k.yaw_rad, k.score) for k in two.top_k] == [
@@ -110,7 +110,7 @@ def test_coarse_to_fine_scores_a_subset_and_matches_exhaustive_here(scene, caffe
     ex = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(search="exhaustive", refine=False)).estimate(*args)
     cfg = EngineConfig(search="coarse-to-fine", coarse_xy_m=0.04, coarse_yaw_rad=math.radians(45), beam=4, refine=False)
     c2f = Engine(scene.mesh, caffe_weights, DEVICE, cfg).estimate(*args)
-    assert c2f.info["evaluated"] < len(space) / 3
+    assert c2f.info.evaluated < len(space) / 3
     assert (c2f.x_m, c2f.y_m, c2f.yaw_rad) == (ex.x_m, ex.y_m, ex.yaw_rad)
     assert c2f.score == pytest.approx(ex.score, abs=1e-6)
 
@@ -151,7 +151,7 @@ def test_candidates_are_set_up_a_chunk_at_a_time(scene, random_weights, monkeypa
     np.testing.assert_allclose([c.score for c in chunked.top_k], [c.score for c in whole.top_k], rtol=0, atol=1e-6)
     # The pruned search's rounds also stop at a chunk, so it may score fewer; what it bounds is the same.
     for key in ("bounded",) if search == "pruned" else ("evaluated",):
-        assert chunked.info[key] == whole.info[key]
+        assert chunked.info.to_dict()[key] == whole.info.to_dict()[key]
 
 
 def test_half_scale_search_finds_the_pose_too(scene, caffe_weights):
@@ -183,7 +183,7 @@ def test_both_conv_forms_give_the_same_scores(scene, caffe_weights):
     for conv in ("warp", "torch"):
         config = EngineConfig(conv=conv, top_k=len(space), search="exhaustive", refine=False, batch_pixels=20000)
         runs[conv] = Engine(scene.mesh, caffe_weights, DEVICE, config).estimate(*args)
-        assert (runs[conv].info["conv"], runs[conv].info["conv_option"]) == (conv, conv)
+        assert (runs[conv].info.conv, runs[conv].info.conv_option) == (conv, conv)
     assert torch.get_num_threads() == threads
     by_pose = {conv: {(k.x_m, k.y_m, k.yaw_rad): k.score for k in r.top_k} for conv, r in runs.items()}
     assert by_pose["warp"].keys() == by_pose["torch"].keys() and len(by_pose["warp"]) > 20

@@ -2,9 +2,9 @@ import numpy as np
 import pytest
 import trimesh
 
-from perch_warp.demo import label_texture, textured_box, write_obj
 from perch_warp.errors import PerchError
 from perch_warp.mesh import load_mesh
+from perch_warp.scene import label_texture, textured_box, write_obj
 
 
 def test_textured_obj_round_trip_and_unit_detection(tmp_path):

@@ -83,7 +83,7 @@ def test_refined_peaks_win_over_the_grid_best_alone(scene, caffe_weights):
     fine = dict(refine_xy_m=0.01, refine_yaw_rad=math.radians(15), search="exhaustive", cpu_threads=1)
     one = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(**fine)).estimate(*args)
     many = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(refine_peaks=3, **fine)).estimate(*args)
-    peaks = many.info["refine"]["peaks"]
+    peaks = many.info.extra["refine"]["peaks"]
     assert 1 <= len(peaks) <= 3 and many.score >= one.score - 1e-12
     assert many.score == max(p["score"] for p in peaks)
     # Each peak's refined score is the best score of its cell, scored pose by pose.
@@ -109,8 +109,8 @@ def test_pruned_keeps_the_exhaustive_best_locations(scene, caffe_weights):
         for s in ("exhaustive", "pruned")
     }
     a, b = runs["exhaustive"], runs["pruned"]
-    assert a.info["refine"]["peaks"] == b.info["refine"]["peaks"] and a.score == b.score
-    assert b.info["k"] == 64  # the rank of the location whose score a bound had to reach
+    assert a.info.extra["refine"]["peaks"] == b.info.extra["refine"]["peaks"] and a.score == b.score
+    assert b.info.extra["k"] == 64  # the rank of the location whose score a bound had to reach
 
 
 def _brute_yaw_peaks(s, m, circular, first):
@@ -159,9 +159,9 @@ def test_refine_yaws_refines_each_yaw_peak_of_the_place(scene, caffe_weights):
     one = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(**fine)).estimate(*args)
     e = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(refine_yaws=3, **fine))
     many = e.estimate(*args)
-    (peak,) = many.info["refine"]["peaks"]
+    (peak,) = many.info.extra["refine"]["peaks"]
     assert len(peak["yaws_deg"]) >= 2 and many.score >= one.score - 1e-12
-    f = one.info["refine"]["from"]  # the place's grid best, refined first
+    f = one.info.extra["refine"]["from"]  # the place's grid best, refined first
     assert peak["yaws_deg"][0] == pytest.approx(f["yaw_deg"])
     yaws = space.axes()[2]
     place = (np.full(len(yaws), f["x_m"]), np.full(len(yaws), f["y_m"]), yaws)

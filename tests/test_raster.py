@@ -10,12 +10,12 @@ from _device import DEVICE
 
 from perch_warp import render
 from perch_warp.camera import Camera
-from perch_warp.demo import label_texture, look_at_table, striped_cylinder, textured_box
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
 from perch_warp.mesh import ObjectMesh
-from perch_warp.render import MeshRenderer, auto_renderer, is_closed_surface, project_boxes
+from perch_warp.render import auto_renderer, is_closed_surface, mesh_renderer, project_boxes
 from perch_warp.report import renderer_line
+from perch_warp.scene import label_texture, look_at_table, striped_cylinder, textured_box
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import RestingPose, model_to_camera
 
@@ -48,7 +48,7 @@ def _both(mesh: ObjectMesh, camera: Camera, R, t, boxes=None):
     boxes = project_boxes(camera, mesh.hull_points_m(), R, t) if boxes is None else boxes
     out = []
     for method in ("bvh", "raster"):
-        b = MeshRenderer(mesh, DEVICE, method).render(camera, R, t, boxes)
+        b = mesh_renderer(mesh, DEVICE, method).render(camera, R, t, boxes)
         out.append((b.mask.numpy(), b.rgb.numpy()))
     return out
 
@@ -60,9 +60,9 @@ def test_closed_surface_test(box):
     assert not is_closed_surface(box.vertices_m, inward)
     cyl = striped_cylinder(0.03, 0.08, np.random.default_rng(0))
     assert is_closed_surface(cyl.vertices_m, cyl.faces)
-    assert MeshRenderer(box, DEVICE, "raster").cull_back_faces
-    assert not MeshRenderer(_open_box(box), DEVICE, "raster").cull_back_faces
-    assert not MeshRenderer(box, DEVICE, "bvh").cull_back_faces
+    assert mesh_renderer(box, DEVICE, "raster").cull_back_faces
+    assert not mesh_renderer(_open_box(box), DEVICE, "raster").cull_back_faces
+    assert not mesh_renderer(box, DEVICE, "bvh").cull_back_faces
 
 
 @pytest.mark.parametrize("which", ["closed box", "open box", "cylinder"])
@@ -87,8 +87,8 @@ def test_open_mesh_needs_its_back_faces(box):
     R, t = _poses(opened, 20, seed=4)
     boxes = project_boxes(CAM, opened.hull_points_m(), R, t)
     (m0, c0), (m1, c1) = _both(opened, CAM, R, t, boxes)
-    r = MeshRenderer(opened, DEVICE, "raster")
-    r.closed_surface = True  # what a wrong closed-mesh test would do
+    r = mesh_renderer(opened, DEVICE, "raster")
+    r.dmesh.closed_surface = True  # what a wrong closed-mesh test would do
     b = r.render(CAM, R, t, boxes)
     assert np.array_equal(m0, m1) and (b.mask.numpy() != m0).sum() > 100
 
@@ -96,9 +96,9 @@ def test_open_mesh_needs_its_back_faces(box):
 def test_memory_chunks_give_the_same_image(box, monkeypatch):
     R, t = _poses(box, 12, seed=5)
     boxes = project_boxes(CAM, box.hull_points_m(), R, t)
-    whole = MeshRenderer(box, DEVICE, "raster").render(CAM, R, t, boxes)
+    whole = mesh_renderer(box, DEVICE, "raster").render(CAM, R, t, boxes)
     monkeypatch.setattr(render, "VERTEX_SLOTS", 2 * len(box.vertices_m) + 1)  # two candidates per chunk
-    chunked = MeshRenderer(box, DEVICE, "raster").render(CAM, R, t, boxes)
+    chunked = mesh_renderer(box, DEVICE, "raster").render(CAM, R, t, boxes)
     assert np.array_equal(whole.mask.numpy(), chunked.mask.numpy())
     assert np.array_equal(whole.rgb.numpy(), chunked.rgb.numpy())
 
@@ -108,7 +108,7 @@ def test_renderer_option(box):
     assert render.RASTER_FACES_PER_PIXEL == 3
     assert auto_renderer("cpu", 3_072, 1_024) == "raster" and auto_renderer("cpu", 3_073, 1_024) == "bvh"
     with pytest.raises(PerchError, match="bvh or raster"):
-        MeshRenderer(box, DEVICE, "opengl")
+        mesh_renderer(box, DEVICE, "opengl")
     with pytest.raises(PerchError, match="--renderer"):
         EngineConfig(renderer="opengl")
 
@@ -116,7 +116,7 @@ def test_renderer_option(box):
 def test_engine_scores_equal_for_both_renderers(box, random_weights, monkeypatch):
     rng = np.random.default_rng(6)
     R, t = _poses(box, 1, seed=7, spread_m=0.03)
-    image = MeshRenderer(box, DEVICE).render_image(CAM, R[0], t[0])[0]
+    image = mesh_renderer(box, DEVICE).render_image(CAM, R[0], t[0])[0]
     image = np.clip(image + rng.normal(0, 0.05, image.shape) + 0.3 * (image == 0), 0, 1)
     image = np.round(image * 255).astype(np.uint8)
     space = SearchSpace((-0.05, 0.05), (-0.05, 0.05), 0.025, (0, 2 * math.pi), math.radians(60))
@@ -128,17 +128,17 @@ def test_engine_scores_equal_for_both_renderers(box, random_weights, monkeypatch
     a, b = results["bvh"], results["raster"]
     cfg = EngineConfig(search="exhaustive", refine=False)
     auto = Engine(box, random_weights, DEVICE, cfg).estimate(image, CAM, TABLE, rp, space)
-    assert auto.info["renderer"] == "raster" and auto.info["median_box_px"] > 1_000
+    assert auto.info.renderer == "raster" and auto.info.median_box_px > 1_000
     assert renderer_line(auto) == (
         f"renderer: raster (auto on cpu: 12 faces <= 3 x the median candidate box, "
-        f"{auto.info['median_box_px']:,.0f} px), closed mesh: back faces skipped"
+        f"{auto.info.median_box_px:,.0f} px), closed mesh: back faces skipped"
     )
     # A mesh with more faces per pixel than the rule allows gets the BVH form.
-    monkeypatch.setattr(render, "RASTER_FACES_PER_PIXEL", 12 / auto.info["median_box_px"] / 2)
+    monkeypatch.setattr(render, "RASTER_FACES_PER_PIXEL", 12 / auto.info.median_box_px / 2)
     many = Engine(box, random_weights, DEVICE, cfg).estimate(image, CAM, TABLE, rp, space)
-    assert many.info["renderer"] == "bvh" and not many.info["cull_back_faces"]
+    assert many.info.renderer == "bvh" and not many.info.cull_back_faces
     assert renderer_line(many).startswith("renderer: bvh (auto on cpu: 12 faces > ")
-    assert (a.info["renderer"], b.info["renderer"]) == ("bvh", "raster") and b.info["cull_back_faces"]
+    assert (a.info.renderer, b.info.renderer) == ("bvh", "raster") and b.info.cull_back_faces
     key = {(c.x_m, c.y_m, c.yaw_rad): c.score for c in a.top_k}
     assert len(key) == len(space) and all(key[(c.x_m, c.y_m, c.yaw_rad)] == c.score for c in b.top_k)
 

@@ -75,7 +75,7 @@ def test_engine_refines_the_photographed_box_below_its_grid(scene, caffe_weights
     assert math.degrees(_ang(grid.yaw_rad, gyaw)) > 3.0  # so the test shows the refinement at work
     assert abs(fine.x_m - gx) <= 0.002 and abs(fine.y_m - gy) <= 0.002
     assert math.degrees(_ang(fine.yaw_rad, gyaw)) <= 3.0 and 0 <= fine.yaw_rad < 2 * math.pi
-    ref = fine.info["refine"]
+    ref = fine.info.extra["refine"]
     assert fine.score > grid.score and ref["score_gain"] == pytest.approx(fine.score - grid.score)
     assert (ref["from"]["x_m"], ref["from"]["y_m"]) == (grid.x_m, grid.y_m)
 
@@ -89,7 +89,7 @@ def test_engine_refines_the_photographed_box_below_its_grid(scene, caffe_weights
     assert (fine.x_m, fine.y_m) == pytest.approx((ex.x_m, ex.y_m), abs=1e-12)
     assert _ang(fine.yaw_rad, ex.yaw_rad) < 1e-9 and fine.score == pytest.approx(ex.score, abs=1e-6)
     # The grid search itself is unchanged, and its counters do not include the refinement's.
-    assert (fine.n_scored, fine.info["rays"]) == (grid.n_scored, grid.info["rays"])
+    assert (fine.n_scored, fine.info.rays) == (grid.n_scored, grid.info.rays)
     assert ref["rays"] > 0 and "refine" in fine.timings_s
     # The runners-up stay grid poses, below the refined best.
     assert all(c.score <= fine.score for c in fine.top_k[1:])

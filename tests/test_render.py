@@ -10,8 +10,8 @@ from matplotlib.path import Path as MplPath
 from scipy.spatial import ConvexHull
 
 from perch_warp.camera import Camera
-from perch_warp.demo import look_at_table, striped_cylinder, textured_box
-from perch_warp.render import BoxProjector, MeshRenderer, project_boxes
+from perch_warp.render import BoxProjector, mesh_renderer, project_boxes
+from perch_warp.scene import look_at_table, striped_cylinder, textured_box
 from perch_warp.table import RestingPose, model_to_camera, rot_z
 
 CAM = Camera(np.array([[300.0, 0, 159.5], [0, 300.0, 119.5], [0, 0, 1]]), 320, 240)
@@ -46,7 +46,7 @@ METHODS = pytest.mark.parametrize("method", ["bvh", "raster"])
 @METHODS
 def test_mask_matches_projected_vertex_hull(box, method):
     R, t = _pose(box)
-    rgb, mask = MeshRenderer(box, DEVICE, method).render_image(CAM, R, t)
+    rgb, mask = mesh_renderer(box, DEVICE, method).render_image(CAM, R, t)
     uv = CAM.project(box.vertices_m @ R.T + t)
     hull = uv[ConvexHull(uv).vertices]
     vv, uu = np.mgrid[0 : CAM.height, 0 : CAM.width]
@@ -62,7 +62,7 @@ def test_mask_matches_projected_vertex_hull(box, method):
 @METHODS
 def test_face_colours_come_from_their_texture_tiles(box, method):
     R, t = _pose(box)
-    rgb, mask = MeshRenderer(box, DEVICE, method).render_image(CAM, R, t)
+    rgb, mask = mesh_renderer(box, DEVICE, method).render_image(CAM, R, t)
     checked = 0
     for k in range(6):
         quad = box.vertices_m[4 * k : 4 * k + 4] @ R.T + t
@@ -82,14 +82,14 @@ def test_vertex_colours_are_interpolated(method):
     cyl = striped_cylinder(0.03, 0.08, np.random.default_rng(0))
     cyl = type(cyl)(cyl.vertices_m, cyl.faces, None, None, np.tile([[0.2, 0.5, 0.7]], (len(cyl.vertices_m), 1)))
     R, t = _pose(cyl)
-    rgb, mask = MeshRenderer(cyl, DEVICE, method).render_image(CAM, R, t)
+    rgb, mask = mesh_renderer(cyl, DEVICE, method).render_image(CAM, R, t)
     assert mask.sum() > 200
     assert np.allclose(rgb[mask], [0.2, 0.5, 0.7], atol=1e-5)
 
 
 @METHODS
 def test_batched_boxes_equal_single_renders(box, method):
-    r = MeshRenderer(box, DEVICE, method)
+    r = mesh_renderer(box, DEVICE, method)
     rp = RestingPose.upright(box.vertices_m)
     R, t = model_to_camera(
         TABLE, rp, np.array([0.0, 0.03, -0.05]), np.array([0.0, 0.02, 0.01]), np.radians([0, 50, 200])

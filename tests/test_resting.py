@@ -121,7 +121,7 @@ def test_stable_search_finds_the_lying_box_and_pruned_equals_exhaustive(lying, c
     gx, gy, gyaw = lying.truth_xy_yaw
     assert abs(ex.x_m - gx) <= 0.01 and abs(ex.y_m - gy) <= 0.01
     assert abs(math.degrees((ex.yaw_rad - gyaw + math.pi) % (2 * math.pi) - math.pi)) <= 30.0
-    assert ex.n_candidates == len(space) * len(rests) == ex.info["evaluated"]
+    assert ex.n_candidates == len(space) * len(rests) == ex.info.evaluated
     assert [(c.x_m, c.y_m, c.yaw_rad, c.rest) for c in pr.top_k] == [
         (c.x_m, c.y_m, c.yaw_rad, c.rest) for c in ex.top_k
     ]

@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 
 from perch_warp.camera import Camera
-from perch_warp.demo import look_at_table
 from perch_warp.errors import PerchError
+from perch_warp.scene import look_at_table
 from perch_warp.search_space import SearchSpace
 
 

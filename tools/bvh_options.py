@@ -21,7 +21,7 @@ import warp as wp
 
 from perch_warp import bench
 from perch_warp.errors import PerchError
-from perch_warp.render import MeshRenderer, project_boxes
+from perch_warp.render import BvhRenderer, DeviceMesh, project_boxes
 from perch_warp.table import model_to_camera
 
 
@@ -49,7 +49,7 @@ def main(argv: list[str] | None = None) -> int:
     boxes = project_boxes(w.camera, w.mesh.hull_points_m(), R, t)
     ok = np.flatnonzero((boxes[:, 2] > 0) & (boxes[:, 3] > 0))[: args.poses]
     R, t, boxes = R[ok], t[ok], boxes[ok]
-    renderer = MeshRenderer(w.mesh, args.device)
+    renderer = BvhRenderer(DeviceMesh(w.mesh, args.device))
     n_rays = int((boxes[:, 2].astype(np.int64) * boxes[:, 3]).sum())
     print(f"{w.label}; {len(ok)} poses, {n_rays:,} rays, {len(w.mesh.faces)} faces, device {args.device}")
     ref = None
@@ -60,8 +60,9 @@ def main(argv: list[str] | None = None) -> int:
         for leaf in args.leaf_sizes:
             try:
                 with wp.ScopedDevice(args.device):
+                    dm = renderer.dmesh  # the same BVH renderer over a BVH built another way
                     renderer.wp_mesh = wp.Mesh(
-                        points=renderer.points, indices=renderer.indices, bvh_constructor=cons, bvh_leaf_size=leaf
+                        points=dm.points, indices=dm.indices, bvh_constructor=cons, bvh_leaf_size=leaf
                     )
             except (RuntimeError, ValueError) as e:
                 print(f"{cons:<7} leaf {leaf}: not available ({e})")

@@ -66,8 +66,7 @@ def main(argv: list[str] | None = None) -> int:
     R, t, boxes = sample_grid_poses(w, args.poses, args.seed, lambda R, t: e.boxes(w.camera, R, t))
     gboxes = grid_boxes(boxes, weights.kernel_size, e.config.stride)
     renderer = "raster" if wp.get_device(args.device).is_cpu else "bvh"
-    e.renderer.use(renderer)
-    batch = e.renderer.render(w.camera, R, t, boxes)
+    batch = e.renderer_for(renderer).render(w.camera, R, t, boxes)
     times, values = {}, {}
     for conv, eng in engines.items():
         scorer = eng.scorer

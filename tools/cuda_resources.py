@@ -87,8 +87,14 @@ def theoretical_occupancy(registers: int, block_dim: int, arch: int) -> tuple[fl
     return blocks * warps_per_block / (max_threads // 32), blocks
 
 
+# Kernel modules outside perch_warp.kernels: the demo's photographer and bench's microbenchmark keep
+# their kernels beside their callers (the engine's are in perch_warp.kernels, found below).
+OTHER_KERNEL_MODULES = ("perch_warp.photo_kernels", "perch_warp.bench.kernels")
+
+
 def kernel_modules() -> list[str]:
-    """The modules of perch_warp.kernels that define Warp kernels (found, so a new one is not missed)."""
+    """Qualified names of the modules that define Warp kernels: every module of perch_warp.kernels
+    (found, so a new one is not missed) and OTHER_KERNEL_MODULES."""
     import pkgutil
 
     import perch_warp.kernels
@@ -96,10 +102,10 @@ def kernel_modules() -> list[str]:
 
     names = []
     for info in pkgutil.iter_modules(perch_warp.kernels.__path__):
-        mod = importlib.import_module(f"perch_warp.kernels.{info.name}")
-        if any(isinstance(v, wp.Kernel) for v in vars(mod).values()):
-            names.append(info.name)
-    return sorted(names)
+        name = f"perch_warp.kernels.{info.name}"
+        if any(isinstance(v, wp.Kernel) for v in vars(importlib.import_module(name)).values()):
+            names.append(name)
+    return sorted(names) + list(OTHER_KERNEL_MODULES)
 
 
 def compile_cubins(arch: int, channels: int, module_dir: Path) -> list[tuple[str, Path]]:
@@ -110,7 +116,7 @@ def compile_cubins(arch: int, channels: int, module_dir: Path) -> list[tuple[str
 
     out = []
     for name in kernel_modules():
-        mod = importlib.import_module(f"perch_warp.kernels.{name}")
+        mod = importlib.import_module(name)
         (cubin,) = wp.compile_aot_module(mod, arch=arch, module_dir=module_dir, use_ptx=False)
         out.append((name, cubin))
     for kernel in feature_kernels(channels)[1:]:

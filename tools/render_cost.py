@@ -42,7 +42,7 @@ from perch_warp.bench import (
 )
 from perch_warp.features import caffe_weights_path
 from perch_warp.mesh import ObjectMesh
-from perch_warp.render import MeshRenderer, flat_offsets, project_boxes
+from perch_warp.render import BvhRenderer, DeviceMesh, RasterRenderer, flat_offsets, project_boxes
 
 
 @wp.kernel(enable_backward=False)
@@ -144,7 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     cam = search_camera(w.camera, args.image_scale)
     hull_m = mesh.hull_points_m()
     R, t, boxes = sample_grid_poses(w, args.poses, args.seed, lambda R, t: project_boxes(cam, hull_m, R, t))
-    renderer = MeshRenderer(mesh, args.device, "bvh")
+    dmesh = DeviceMesh(mesh, args.device)
+    renderer = BvhRenderer(dmesh)
     pix_off = flat_offsets(boxes)
     n = int(pix_off[-1])
     with wp.ScopedDevice(args.device):
@@ -182,7 +183,7 @@ def main(argv: list[str] | None = None) -> int:
         )
         m_any = wp.empty(n, dtype=wp.uint8)
         out["any_hit"] = timed(lambda: wp.launch(any_hit, n, inputs=common, outputs=[m_any]))
-        raster = MeshRenderer(mesh, args.device, "raster")
+        raster = RasterRenderer(dmesh)
         out["raster"] = timed(lambda: out.__setitem__("batch", raster.render(cam, R, t, boxes)))
         raster_batch = out.pop("batch")
     agree = {

@@ -65,17 +65,17 @@ def measure(engine: Engine, w: Workload, repeat: int) -> dict:
     return {
         "space": w.space.describe(),
         "candidates": int(r.n_candidates),
-        "evaluated": int(r.info["evaluated"]),
-        "rays": int(r.info["rays"]),
+        "evaluated": r.info.evaluated,
+        "rays": r.info.rays,
         "wall_s": wall,
         "search_s": search_s,
         "timings_s": dict(r.timings_s),
-        "candidates_per_s": r.info["evaluated"] / search_s if search_s > 0 else None,
-        "rays_per_s_render": r.info["rays"] / r.timings_s["render"] if r.timings_s.get("render", 0) > 0 else None,
+        "candidates_per_s": r.info.evaluated / search_s if search_s > 0 else None,
+        "rays_per_s_render": r.info.rays / r.timings_s["render"] if r.timings_s.get("render", 0) > 0 else None,
         # auto picks these per search (the renderer by faces per box pixel), so they can change along a sweep
-        "renderer": r.info.get("renderer"),
-        "conv": r.info.get("conv"),
-        "threads": int(r.info.get("threads", 1)),
+        "renderer": r.info.renderer,
+        "conv": r.info.conv,
+        "threads": r.info.threads,
     }
 
 

@@ -82,7 +82,7 @@ def collect(args: argparse.Namespace) -> None:
             )
             print(
                 f"{tg.scene_id}/{tg.im_id}/{tg.inst} obj {tg.obj_id}: {len(space)} candidates, "
-                f"{res.info['evaluated']} scored, {time.perf_counter() - t:.1f} s",
+                f"{res.info.evaluated} scored, {time.perf_counter() - t:.1f} s",
                 file=sys.stderr,
                 flush=True,
             )

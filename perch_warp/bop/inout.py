@@ -22,6 +22,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
+from PIL import Image, UnidentifiedImageError
 
 from ..camera import Camera, camera_from_entry, entry_size
 from ..errors import PerchError
@@ -342,8 +343,6 @@ def read_camera_json(path: str | Path, image_id: int | None = None) -> dict:
 
 def read_depth_mm(path: str | Path, depth_scale: float) -> np.ndarray:
     """A BOP depth PNG (uint16) as float32 millimetres (raw * depth_scale); 0 = no reading."""
-    from PIL import Image, UnidentifiedImageError
-
     path = Path(path)
     try:
         with Image.open(path) as im:

@@ -117,14 +117,14 @@ class EngineEstimator:
         T = np.asarray(res.T_m2c, dtype=np.float64)
         details = {
             "n_candidates": int(res.n_candidates),
-            "n_evaluated": int(res.info.get("evaluated", res.n_candidates)),  # scored: fewer when pruned
+            "n_evaluated": res.info.evaluated,  # scored: fewer when pruned
             "timings_s": {k: float(v) for k, v in res.timings.items()},
             "device": res.device,
             "top_k": [{"x_m": c.x_m, "y_m": c.y_m, "yaw_rad": c.yaw_rad, "score": c.score} for c in res.top_k],
         }
-        if "refine" in res.info:  # where the refinement started (the grid's best) and how far it went
-            details["refine"] = res.info["refine"]
-        details["probe"] = res.info["probe"]
+        if "refine" in res.info.extra:  # where the refinement started (the grid's best) and how far it went
+            details["refine"] = res.info.extra["refine"]
+        details["probe"] = res.info.extra["probe"]
         if res.resting is not None:
             details["rest"] = res.resting.label
             details["rest_z_m"] = res.resting.z_m

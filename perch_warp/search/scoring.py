@@ -28,7 +28,7 @@ from ..features import FeatureWeights
 from ..image import check_rgb
 from ..kernels.features import PointWeights
 from ..rarity import rarity_and_labels
-from ..render import MIN_DEPTH_M, BoxProjector
+from ..render import MIN_DEPTH_M, BoxProjector, Renderer
 from ..score import FeatureScorer, grid_boxes, grid_shape, point_weights, top_alpha_mean_device
 from ..score_terms import ScoreTerms, background_offset
 from ..search_space import SearchSpace
@@ -98,9 +98,9 @@ class Photo:
 
 @dataclass(frozen=True)
 class Backends:
-    """What is built once per mesh (and weights, device): renderer, scorer, box projector."""
+    """What is built once per mesh (and weights, device): scorer, box projector (the renderers are
+    the engine's, one of them chosen per search)."""
 
-    renderer: object  # render.MeshRenderer
     scorer: FeatureScorer
     boxes: BoxProjector
     weights: FeatureWeights
@@ -181,7 +181,7 @@ class ScoringService:
     camera: Camera
     table: Table
     resting: RestingPose
-    renderer: object  # the renderer this search uses (render.MeshRenderer)
+    renderer: Renderer  # the form of kernel #1 this search uses
     timings: dict = dataclasses.field(default_factory=dict)
     bar: object = None  # a tqdm bar or None
 

@@ -1,4 +1,4 @@
-"""A shaded, shadowed photo of a whole scene, for the demo and the tests.
+"""Kernels of the demo's photographer (photo.py): a shaded, shadowed photo of a whole scene.
 
 This is the "camera" the engine is checked against, so it deliberately differs from
 kernel #1: Lambertian + specular lighting from a point light, hard shadows, and the
@@ -8,17 +8,13 @@ own pass (camera frame, metres) and passes are composited by depth.
 
 import warp as wp
 
-from .render import surface_color
+from .kernels.render import MeshLook, surface_color
 
 
 @wp.kernel(enable_backward=False)
 def primary_pass(
     mesh: wp.uint64,
-    indices: wp.array(dtype=wp.int32),
-    uvs: wp.array(dtype=wp.vec2),
-    texture: wp.array2d(dtype=wp.vec3),
-    colors: wp.array(dtype=wp.vec3),
-    use_texture: int,
+    look: MeshLook,
     fx: float,
     fy: float,
     cx: float,
@@ -33,7 +29,7 @@ def primary_pass(
     d = wp.normalize(wp.vec3((float(u) - cx) / fx, (float(v) - cy) / fy, 1.0))
     q = wp.mesh_query_ray(mesh, wp.vec3(0.0, 0.0, 0.0), d, depth[v, u])
     if q.result:
-        albedo[v, u] = surface_color(indices, uvs, texture, colors, use_texture, q.face, q.u, q.v)
+        albedo[v, u] = surface_color(look, q.face, q.u, q.v)
         n = wp.normalize(q.normal)
         if wp.dot(n, d) > 0.0:
             n = -n

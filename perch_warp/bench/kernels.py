@@ -8,7 +8,7 @@ triangle tests alone (no texture lookup, no packing by boxes).
 
 import warp as wp
 
-from .render import PixelRays, pixel_ray_m
+from ..kernels.render import PixelRays, pixel_ray_m
 
 # Written where a ray meets nothing.
 MISS = -1.0
