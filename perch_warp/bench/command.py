@@ -246,6 +246,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     m.add_argument(
         "--refine-peaks", type=int, default=1, help="refine this many distinct grid peaks, as the CLI (default: 1)"
     )
+    m.add_argument(
+        "--refine-yaws", type=int, default=1, help="refine this many yaws of each peak's place, as the CLI (default: 1)"
+    )
     b = parser.add_argument_group("benchmark")
     b.add_argument("--repeat", type=int, default=1, help="timed runs after the warm-up runs (default: 1)")
     b.add_argument(
@@ -291,6 +294,7 @@ def _settings(args: argparse.Namespace, dataset: Path, info: SearchInfo, config,
         "search": args.search,
         "refine": args.refine,
         "refine_peaks": args.refine_peaks,
+        "refine_yaws": args.refine_yaws,
         "renderer": info.renderer,
         "renderer_option": args.renderer,
         "cull_back_faces": info.cull_back_faces,
@@ -318,6 +322,7 @@ def run(args: argparse.Namespace) -> int:
         cpu_threads=args.cpu_threads,
         refine=args.refine,
         refine_peaks=args.refine_peaks,
+        refine_yaws=args.refine_yaws,
         renderer=args.renderer,
         conv=args.conv,
     )
