@@ -140,7 +140,7 @@ class SearchInfo:
         """The inverse of to_dict (a result JSON's top level; keys of neither kind are left out)."""
         names = [f for f in cls.__dataclass_fields__ if f != "extra"]
         fixed = {k: d.get(k) for k in names}
-        skip = {*names, "pose", "top_k", "n_candidates", "n_scored", "timings_s", "device"}
+        skip = {*names, "pose", "top_k", "n_candidates", "n_scored", "timings_s", "device", "confidence", "resting"}
         return cls(**fixed, extra={k: v for k, v in d.items() if k not in skip})
 
 
@@ -194,7 +194,8 @@ class Result:
             "n_scored": self.n_scored,
             "timings_s": self.timings_s,
             "device": self.device,
-            "confidence": None if self.confidence is None else self.confidence.to_dict(),
             **self.info.to_dict(),
+            # Added after the search's keys, so that those keep their order (a user-facing format).
+            "confidence": None if self.confidence is None else self.confidence.to_dict(),
             **({"resting": self.resting.to_dict()} if self.resting is not None else {}),
         }

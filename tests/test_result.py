@@ -4,7 +4,8 @@ import numpy as np
 
 from perch_warp.result import Candidate, Result, SearchInfo
 
-# The result JSON's top level as written before SearchInfo existed (engine.py's info dict), in order.
+# The result JSON's top level as written before SearchInfo existed (engine.py's info dict), in order,
+# and the confidence (issue 19) appended after them.
 KEYS = [
     "pose",
     "top_k",
@@ -36,6 +37,7 @@ KEYS = [
     "bounded",
     "scored",
     "refine",
+    "confidence",
 ]
 
 
