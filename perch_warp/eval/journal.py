@@ -45,6 +45,11 @@ NOT_SEARCH_OPTIONS = {
     "batch_pixels",
     "cpu_threads",  # the scores do not depend on the number of CPU threads
     "max_candidates",  # a guard, not a search setting
+    # Where the targets run (Ray workers or this process) does not change the scores: a run may be
+    # interrupted and resumed serial or distributed, either way.
+    "ray",
+    "ray_workers",
+    "ray_cpus_per_worker",
 }
 
 
