@@ -98,6 +98,9 @@ def run(args: argparse.Namespace) -> int:
         from ..distributed.eval_runner import RayOptions, ray_runner
 
         require_ray()  # before anything is read: without Ray, say how to install it
+        for flag, n in (("--ray-workers", args.ray_workers), ("--ray-cpus-per-worker", args.ray_cpus_per_worker)):
+            if n is not None and n < 1:
+                raise PerchError(f"{flag} must be at least 1, got {n}")
         ray_options = RayOptions(args.ray or None, args.ray_workers, args.ray_cpus_per_worker)
         runner = ray_runner(ray_options, args.weights, args.device, config)
 
