@@ -48,10 +48,20 @@ def worker_lost_errors(ray) -> tuple[type[BaseException], ...]:
 class WorkerPool:
     """`plan.n_workers` SearchWorker actors holding the `weights` (put in the object store once)."""
 
-    def __init__(self, plan: WorkerPlan, weights, max_attempts: int = DEFAULT_MAX_ATTEMPTS, max_losses=None):
+    def __init__(
+        self,
+        plan: WorkerPlan,
+        weights,
+        max_attempts: int = DEFAULT_MAX_ATTEMPTS,
+        max_losses: int | None = None,
+        *,
+        ray=None,
+        worker_cls: type = SearchWorker,
+    ):
+        """`ray` and `worker_cls` default to Ray and SearchWorker (the tests pass stand-ins)."""
         if max_attempts < 1:
             raise PerchError(f"max_attempts must be at least 1, got {max_attempts}")
-        self.ray = require_ray()
+        self.ray = ray or require_ray()
         self.plan = plan
         self.max_attempts = max_attempts
         # Replacements in all: beyond this many lost workers, something kills every worker (e.g. a
@@ -63,9 +73,12 @@ class WorkerPool:
         # max_restarts=0: a lost worker is replaced by this pool (which knows its task), not by Ray.
         self._cls = self.ray.remote(
             num_cpus=plan.cpus_per_worker, num_gpus=plan.gpus_per_worker, max_restarts=0, max_task_retries=0
-        )(SearchWorker)
+        )(worker_cls)
         self.actors = [self._new_actor() for _ in range(plan.n_workers)]
         self._in_flight: dict[Any, tuple[Any, _Task]] = {}  # task reference -> (worker, task)
+        # Replacements still importing (ping reference -> worker): a retried task goes to whichever worker
+        # is free first, not to a new one that may take tens of seconds to start.
+        self._starting: dict[Any, Any] = {}
         self._wait_started()
 
     def _new_actor(self):
@@ -110,10 +123,17 @@ class WorkerPool:
             while out:
                 yield out.popleft()
             if not self._in_flight:
-                if retry or not idle:  # cannot happen: a retry is started while a worker is idle
-                    raise PerchError("Ray pool: tasks left but no worker to run them")
-                return
-            [ref], _ = self.ray.wait(list(self._in_flight), num_returns=1)
+                if idle:  # the loop above found no task left: done
+                    return
+                if not self._starting:
+                    raise PerchError(
+                        f"all Ray workers were lost ({self.losses} losses); what finished is saved, run again "
+                        "to continue"
+                    )
+            [ref], _ = self.ray.wait([*self._in_flight, *self._starting], num_returns=1)
+            if ref in self._starting:
+                self._started(ref, idle)
+                continue
             actor, task = self._in_flight.pop(ref)
             self._collect(ref, actor, task, idle, retry, out)
 
@@ -133,7 +153,7 @@ class WorkerPool:
         try:
             reply = self.ray.get(ref)
         except worker_lost_errors(self.ray) as e:
-            self._replace(actor, idle, f"worker lost on task {task.key}: {_first_line(e)}")
+            self._replace(actor, f"worker lost on task {task.key}: {_first_line(e)}")
             if task.attempt >= self.max_attempts:
                 reason = f"its worker was lost {task.attempt} times (last: {_first_line(e)})"
                 out.append((task.key, Reply(failure=reason), task.attempt))
@@ -150,7 +170,7 @@ class WorkerPool:
         idle.append(actor)
         out.append((task.key, reply, task.attempt))
 
-    def _replace(self, actor, idle: list, why: str) -> None:
+    def _replace(self, actor, why: str) -> None:
         """Drop a lost worker and start another in its place while the loss budget lasts."""
         self.actors.remove(actor)
         self.losses += 1
@@ -158,12 +178,17 @@ class WorkerPool:
         if self.losses <= self.max_losses:
             new = self._new_actor()
             self.actors.append(new)
-            idle.append(new)
-        elif not self.actors:
-            raise PerchError(
-                f"all Ray workers were lost ({self.losses} losses; last: {why}); what finished is saved, "
-                "run again to continue"
-            )
+            self._starting[new.ping.remote()] = new
+
+    def _started(self, ref, idle: list) -> None:
+        """A replacement answered: it joins the idle workers (or, if it could not start, is replaced)."""
+        actor = self._starting.pop(ref)
+        try:
+            self.ray.get(ref)
+        except self.ray.exceptions.RayError as e:
+            self._replace(actor, f"a replacement worker could not start: {_first_line(e)}")
+            return
+        idle.append(actor)
 
     def close(self) -> None:
         """End the workers (their engines with them)."""
