@@ -72,6 +72,20 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_ROLL_STEP_DEG,
         help=f"--rest stable: roll step (deg) on a curved side (default: {DEFAULT_ROLL_STEP_DEG:g})",
     )
+    d = parser.add_argument_group("distributed (Ray; docs/distributed.md)")
+    d.add_argument(
+        "--ray",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="ADDRESS",
+        help="search the targets on Ray workers: one per GPU, or per --ray-cpus-per-worker CPUs; without "
+        "ADDRESS a local cluster on this machine, 'auto' the one `ray start` made here, or HOST:PORT",
+    )
+    d.add_argument("--ray-workers", type=int, metavar="N", help="at most N workers (default: as many as fit)")
+    d.add_argument(
+        "--ray-cpus-per-worker", type=int, default=1, metavar="N", help="CPU slots (and threads) per worker (1)"
+    )
     add_method_arguments(parser)
     add_search_arguments(parser)
 
@@ -99,12 +113,27 @@ def run(args: argparse.Namespace) -> int:
     def make_estimator(model_paths: dict[int, Path]) -> Estimator:
         return EngineEstimator(model_paths, args.weights, args.device, config, args.rest, args.roll_step)
 
+    runner = None
+    if args.ray is not None:
+        from ..distributed.cluster import require_ray
+        from ..distributed.eval_runner import RayOptions, ray_runner
+
+        require_ray()  # before anything is read: without Ray, say how to install it
+        if args.rest != "truth":  # the workers build truth-protocol estimators only, for now
+            raise PerchError("--ray runs --rest truth only (the thesis's protocol); run --rest stable without --ray")
+        for flag, n in (("--ray-workers", args.ray_workers), ("--ray-cpus-per-worker", args.ray_cpus_per_worker)):
+            if n is not None and n < 1:
+                raise PerchError(f"{flag} must be at least 1, got {n}")
+        ray_options = RayOptions(args.ray or None, args.ray_workers, args.ray_cpus_per_worker)
+        runner = ray_runner(ray_options, args.weights, args.device, config)
+
     command = shlex.join(["python", "-m", "perch_warp", *sys.argv[1:]])
     try:
         summary = evaluate(
             args.dataset,
             args.out,
-            make_estimator=make_estimator,
+            make_estimator=None if runner else make_estimator,
+            runner=runner,
             space_fn=space_fn,
             split=args.split,
             scenes=scenes,

@@ -45,6 +45,11 @@ NOT_SEARCH_OPTIONS = {
     "batch_pixels",
     "cpu_threads",  # the scores do not depend on the number of CPU threads
     "max_candidates",  # a guard, not a search setting
+    # Where the targets run (Ray workers or this process) does not change the scores: a run may be
+    # interrupted and resumed serial or distributed, either way.
+    "ray",
+    "ray_workers",
+    "ray_cpus_per_worker",
 }
 
 
@@ -58,6 +63,9 @@ class Done:
     score: float
     time_s: float
     details: dict = field(default_factory=dict)
+    # The search's heat map (perch_warp.score_map.ScoreMap) on the way from the search to its file under
+    # heatmaps/; never journalled (None when read back).
+    heatmap: object = field(default=None, compare=False, repr=False)
 
 
 def repair_journal(out_dir: Path) -> None:

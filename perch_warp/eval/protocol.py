@@ -6,7 +6,7 @@ import json
 import math
 import sys
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -15,11 +15,11 @@ from scipy.ndimage import binary_erosion
 from tqdm import tqdm
 
 from .. import bop, pose_error
-from ..bop import Selection, TableCache, Target, select_targets
+from ..bop import ImageInfo, Selection, TableCache, Target, select_targets
 from ..camera import Camera
 from ..errors import PerchError
 from ..image import load_rgb
-from ..mesh import load_mesh
+from ..mesh import load_mesh as load_mesh_file
 from ..options import SearchTooLarge
 from ..outputs import atomic_write, atomic_write_text, check_output_dir, folder_lock
 from ..resting import DEFAULT_ROLL_STEP_DEG, stable_rests
@@ -66,7 +66,10 @@ SpaceFn = Callable[[Camera, Table, RestingPose], object]
 
 
 class EngineEstimator:
-    """The real search: one `Engine` per object, built on first use (outside the timed call)."""
+    """The real search: one `Engine` per object, built on first use (outside the timed call).
+
+    `weights` (already loaded) and `load_mesh(obj_id)` replace reading `weights_spec` and the mesh files
+    here: Ray workers get both from the driver (perch_warp.distributed)."""
 
     def __init__(
         self,
@@ -76,6 +79,9 @@ class EngineEstimator:
         config=None,
         rest: str = "truth",
         roll_step_deg: float = DEFAULT_ROLL_STEP_DEG,
+        *,
+        weights=None,
+        load_mesh: Callable[[int], object] | None = None,
     ):
         self.model_paths = model_paths
         self.weights_spec = weights_spec
@@ -85,7 +91,8 @@ class EngineEstimator:
         # stable pose of the mesh (perch_warp.resting), searched together, as a user without ground truth.
         self.rest = rest
         self.roll_step_deg = roll_step_deg
-        self._weights = None
+        self._weights = weights
+        self.load_mesh = load_mesh or (lambda obj_id: load_mesh_file(self.model_paths[obj_id]))
         self._engines: dict[int, object] = {}
         self._rests: dict[int, list] = {}
 
@@ -99,10 +106,15 @@ class EngineEstimator:
 
         if self._weights is None:
             self._weights = load_feature_weights(self.weights_spec)
-        mesh = load_mesh(self.model_paths[obj_id])
+        mesh = self.load_mesh(obj_id)
         self._engines[obj_id] = Engine(mesh, self._weights, self.device, self.config)
         if self.rest == "stable":
             self._rests[obj_id] = stable_rests(mesh.vertices_m, mesh.faces, self.roll_step_deg)
+
+    def engine(self, obj_id: int):
+        """The object's Engine, built on first use."""
+        self.prepare(obj_id)
+        return self._engines[obj_id]
 
     def __call__(self, target: Target, image_rgb, camera, table, resting, space) -> Estimate:
         self.prepare(target.obj_id)
@@ -171,8 +183,9 @@ def evaluate(
     dataset_dir: str | Path,
     out_dir: str | Path,
     *,
-    make_estimator: Callable[[dict[int, Path]], Estimator],
+    make_estimator: Callable[[dict[int, Path]], Estimator] | None = None,
     space_fn: SpaceFn,
+    runner: TargetRunner | None = None,
     split: str = "test",
     scenes: Sequence[int] | None = None,
     objects: Sequence[int] | None = None,
@@ -191,10 +204,14 @@ def evaluate(
 
     `make_estimator(mesh paths by object id)` is called once, only when targets remain;
     the estimator it returns is called once per unfinished target, and `space_fn` gives
-    its search region. `options` (JSON)
+    its search region. `runner` instead runs the targets elsewhere (perch_warp.distributed's Ray
+    workers) and returns their outcomes; this process alone writes the outputs either way. `options` (JSON)
     are the search settings, recorded in eval_config.json and checked on resume.
     """
 
+    if (make_estimator is None) == (runner is None):
+        raise ValueError("evaluate needs make_estimator (serial) or runner, not both")
+    runner = runner or serial_runner(make_estimator)
     out_dir = check_output_dir(out_dir, "--out")
     ds = bop.open_dataset(dataset_dir, split, models_dir)
     selection = select_targets(ds, scenes, objects, max_images, table_source)
@@ -203,13 +220,13 @@ def evaluate(
     out_dir.mkdir(parents=True, exist_ok=True)
     with folder_lock(out_dir, "OUTDIR"):
         return _evaluate_locked(
-            ds, selection, out_dir, make_estimator, space_fn, split, table_source, options, restart, progress,
+            ds, selection, out_dir, runner, space_fn, split, table_source, options, restart, progress,
             plots, gallery, max_points, command, dataset_dir,
         )  # fmt: skip
 
 
 def _evaluate_locked(
-    ds, selection, out_dir, make_estimator, space_fn, split, table_source, options, restart, progress, plots,
+    ds, selection, out_dir, runner, space_fn, split, table_source, options, restart, progress, plots,
     gallery, max_points, command, dataset_dir,
 ) -> dict:  # fmt: skip
     """`evaluate` once OUTDIR is locked: the state, the loop over targets and the outputs."""
@@ -223,79 +240,133 @@ def _evaluate_locked(
     repair_journal(out_dir)
     done, foreign, failed = load_state(out_dir, selection)
     tables = TableCache(table_source)
-    _run_targets(out_dir, selection, done, foreign, failed, tables, make_estimator, space_fn, progress)
+    _run_targets(out_dir, selection, done, foreign, failed, tables, runner, space_fn, progress)
     write_results(out_dir, selection, done, foreign)  # canonical order, also when nothing was left to do
     run = {"dataset": str(ds.root), "split": split, "command": command, "options": options or {}}
     run["table_source"] = table_source
     return _write_outputs(out_dir, ds, selection, done, failed, tables, max_points, run, plots, gallery)
 
 
-def _run_targets(out_dir, selection, done, foreign, failed, tables, make_estimator, space_fn, progress) -> None:
-    """Search every target not yet done, journalling each (or its failure) and rewriting results.csv."""
+#: (targets to run, in order; table frames; search-region function; mesh paths by object id) ->
+#: (target, its Done or its failure's one-line reason), in any order, each target exactly once.
+Outcome = tuple[Target, "Done | str"]
+TargetRunner = Callable[[list[tuple[ImageInfo, Target]], TableCache, SpaceFn, dict[int, Path]], Iterator[Outcome]]
+
+
+@dataclass
+class Job:
+    """One target's search inputs, prepared where the journal is written (the driver): the camera of its
+    image, the table frame (table -> camera, metres) and how it was found, the resting pose from the
+    ground truth (height, roll, pitch) and the search region (which never looks at the ground truth)."""
+
+    target: Target
+    camera: Camera
+    table: Table
+    table_how: str
+    resting: RestingPose
+    space: object
+
+
+def prepare_job(im: ImageInfo, target: Target, tables: TableCache, space_fn: SpaceFn) -> Job:
+    """The inputs of one target's search; PerchError when the target cannot be evaluated."""
+    if target.problem:
+        raise PerchError(target.problem)
+    table, table_how = tables.get(im)
+    resting, _, _, _ = decompose_on_table(table, target.R_gt, target.t_gt_m)
+    return Job(target, im.camera, table, table_how, resting, space_fn(im.camera, table, resting))
+
+
+def run_job(job: Job, image_rgb: np.ndarray, estimator: Estimator) -> Done:
+    """One target's search, timed (building the engine and the diagnostics are not part of its time)."""
+    prepare = getattr(estimator, "prepare", None)
+    if callable(prepare):
+        prepare(job.target.obj_id)  # building the engine is not part of the per-target runtime
+    t0 = time.perf_counter()
+    est = estimator(job.target, image_rgb, job.camera, job.table, job.resting, job.space)
+    dt = time.perf_counter() - t0 - est.diagnostics_s
+    details = dict(est.details)
+    details["table"] = job.table_how
+    details.update(_space_details(job.space, job.table, job.target))
+    R = np.asarray(est.R_m2c, dtype=np.float64).reshape(3, 3)
+    t = np.asarray(est.t_m2c_m, dtype=np.float64).reshape(3)
+    return Done(job.target.obj_id, R, t, float(est.score), dt, details, heatmap=est.heatmap)
+
+
+def failure_reason(e: BaseException) -> str:
+    """A target's failure as one line: a PerchError's message, else the exception's type and message."""
+    reason = str(e) if isinstance(e, PerchError) else f"{type(e).__name__}: {e}"
+    return " ".join(reason.split())
+
+
+def serial_runner(make_estimator: Callable[[dict[int, Path]], Estimator]) -> TargetRunner:
+    """Targets one after another in this process; the estimator is made on the first target that needs it."""
+
+    def run(todo, tables: TableCache, space_fn: SpaceFn, model_paths: dict[int, Path]) -> Iterator[Outcome]:
+        state = {"estimator": None, "image_key": None, "image": None}
+        for im, target in todo:
+            # One bad target must not stop a long evaluation: whatever fails in it (its ground truth, its
+            # table, its search) is its failure and the run goes on. Options that would fail every target
+            # alike (SearchTooLarge) and interruptions still stop the run.
+            try:
+                job = prepare_job(im, target, tables, space_fn)
+                image = _image(state, im)
+                if state["estimator"] is None:
+                    state["estimator"] = make_estimator(model_paths)
+                yield target, run_job(job, image, state["estimator"])
+            except Exception as e:  # noqa: BLE001 - recorded with its reason; see above
+                if stops_the_run(e):
+                    raise
+                yield target, failure_reason(e)
+
+    return run
+
+
+def _image(state: dict, im: ImageInfo) -> np.ndarray:
+    """The image's photo, read once for all its targets (targets come in image order)."""
+    if state["image_key"] != (im.scene_id, im.im_id):
+        state["image"] = None
+        state["image_key"] = (im.scene_id, im.im_id)
+        state["image"] = load_rgb(im.rgb)
+    if state["image"] is None:
+        raise PerchError(f"image {im.rgb} could not be read (see the image's first target)")
+    return state["image"]
+
+
+def _run_targets(out_dir, selection, done, foreign, failed, tables, runner: TargetRunner, space_fn, progress) -> None:
+    """Search every target not yet done, journalling each (or its failure) and rewriting results.csv.
+
+    This process alone writes: the runner (serial, or Ray workers) only returns outcomes, so a target is
+    recorded once whatever happened to the workers."""
     todo = [(im, t) for im in selection.images for t in im.targets if t.key not in done]
     n_before = len(selection.targets) - len(todo)
     if n_before and todo:
         print(f"resuming: {n_before} of {len(selection.targets)} targets already done in {out_dir}", file=sys.stderr)
+    expected = {t.key for _, t in todo}
     bar = tqdm(total=len(todo), unit="target", desc="eval", disable=not progress or not todo, dynamic_ncols=True)
-    state = {"estimator": None, "image_key": None, "image": None}
     try:
-        for im, target in todo:
-            # One bad target must not stop a long evaluation: whatever fails in it (its ground truth, its
-            # table, its search) is journalled as its failure and the run goes on. Options that would fail
-            # every target alike (SearchTooLarge) and interruptions still stop the run.
-            try:
-                d = _run_target(im, target, state, tables, make_estimator, space_fn, selection)
-            except Exception as e:  # noqa: BLE001 - recorded with its reason; see above
-                if _stops_the_run(e):
-                    raise
-                reason = str(e) if isinstance(e, PerchError) else f"{type(e).__name__}: {e}"
-                failed[target.key] = " ".join(reason.split())
-                append_failure(out_dir, target, reason)
-                print(f"target {target.key} (obj {target.obj_id}) failed: {failed[target.key]}", file=sys.stderr)
+        for target, outcome in runner(todo, tables, space_fn, selection.model_paths):
+            if target.key not in expected:  # a duplicate (or a stranger) is never written
+                raise PerchError(f"target {target.key} came back twice or was not asked for: a runner bug")
+            expected.discard(target.key)
+            if isinstance(outcome, str):
+                failed[target.key] = outcome
+                append_failure(out_dir, target, outcome)
+                print(f"target {target.key} (obj {target.obj_id}) failed: {outcome}", file=sys.stderr)
                 bar.update(1)
                 continue
             # Journal first: if the rewrite below is interrupted, the journal still has the target.
-            append_journal(out_dir, target, d)
-            if state.get("heatmap") is not None:  # after the journal: a lost heat map only loses a picture
-                atomic_write(heatmap_path(out_dir, target.key), state["heatmap"].save)
-            done[target.key] = d
+            append_journal(out_dir, target, outcome)
+            if outcome.heatmap is not None:  # after the journal: a lost heat map only loses a picture
+                atomic_write(heatmap_path(out_dir, target.key), outcome.heatmap.save)
+            done[target.key] = outcome
             failed.pop(target.key, None)
             write_results(out_dir, selection, done, foreign)
-            bar.set_postfix_str(f"{target.scene_id}/{target.im_id} obj {target.obj_id} {d.time_s:.1f}s")
+            bar.set_postfix_str(f"{target.scene_id}/{target.im_id} obj {target.obj_id} {outcome.time_s:.1f}s")
             bar.update(1)
     finally:
         bar.close()
-
-
-def _run_target(im, target: Target, state: dict, tables: TableCache, make_estimator, space_fn, selection) -> Done:
-    """One target's search, timed; `state` carries the estimator and the current image between targets."""
-    state["heatmap"] = None
-    if target.problem:
-        raise PerchError(target.problem)
-    if state["image_key"] != (im.scene_id, im.im_id):
-        state["image"] = None
-        state["image"] = load_rgb(im.rgb)
-        state["image_key"] = (im.scene_id, im.im_id)
-    if state["image"] is None:
-        raise PerchError(f"image {im.rgb} could not be read (see the image's first target)")
-    table, table_how = tables.get(im)
-    resting, _, _, _ = decompose_on_table(table, target.R_gt, target.t_gt_m)
-    space = space_fn(im.camera, table, resting)
-    if state["estimator"] is None:
-        state["estimator"] = make_estimator(selection.model_paths)
-    estimator = state["estimator"]
-    prepare = getattr(estimator, "prepare", None)
-    if callable(prepare):
-        prepare(target.obj_id)  # building the engine is not part of the per-target runtime
-    t0 = time.perf_counter()
-    est = estimator(target, state["image"], im.camera, table, resting, space)
-    state["heatmap"] = est.heatmap
-    dt = time.perf_counter() - t0 - est.diagnostics_s
-    details = dict(est.details)
-    details["table"] = table_how
-    details.update(_space_details(space, table, target))
-    R = np.asarray(est.R_m2c, dtype=np.float64).reshape(3, 3)
-    return Done(target.obj_id, R, np.asarray(est.t_m2c_m, dtype=np.float64).reshape(3), float(est.score), dt, details)
+    if expected:
+        raise PerchError(f"{len(expected)} targets got no outcome, e.g. {min(expected)}: a runner bug")
 
 
 def _write_outputs(out_dir, ds, selection, done, failed, tables, max_points, run: dict, plots, gallery) -> dict:
@@ -319,7 +390,7 @@ def _write_outputs(out_dir, ds, selection, done, failed, tables, max_points, run
     return summary
 
 
-def _stops_the_run(e: Exception) -> bool:
+def stops_the_run(e: BaseException) -> bool:
     """Errors that are not one target's: a search-size guard (the same options for every target)."""
     return isinstance(e, SearchTooLarge)
 
