@@ -113,20 +113,7 @@ def run(args: argparse.Namespace) -> int:
     def make_estimator(model_paths: dict[int, Path]) -> Estimator:
         return EngineEstimator(model_paths, args.weights, args.device, config, args.rest, args.roll_step)
 
-    runner = None
-    if args.ray is not None:
-        from ..distributed.cluster import require_ray
-        from ..distributed.eval_runner import RayOptions, ray_runner
-
-        require_ray()  # before anything is read: without Ray, say how to install it
-        if args.rest != "truth":  # the workers build truth-protocol estimators only, for now
-            raise PerchError("--ray runs --rest truth only (the thesis's protocol); run --rest stable without --ray")
-        for flag, n in (("--ray-workers", args.ray_workers), ("--ray-cpus-per-worker", args.ray_cpus_per_worker)):
-            if n is not None and n < 1:
-                raise PerchError(f"{flag} must be at least 1, got {n}")
-        ray_options = RayOptions(args.ray or None, args.ray_workers, args.ray_cpus_per_worker)
-        runner = ray_runner(ray_options, args.weights, args.device, config)
-
+    runner = _ray_runner(args, config) if args.ray is not None else None
     command = shlex.join(["python", "-m", "perch_warp", *sys.argv[1:]])
     try:
         summary = evaluate(
@@ -164,3 +151,18 @@ def run(args: argparse.Namespace) -> int:
         )
         return 1
     return 0
+
+
+def _ray_runner(args: argparse.Namespace, config):
+    """eval --ray's TargetRunner (perch_warp.distributed), its options checked before any work."""
+    from ..distributed.cluster import require_ray
+    from ..distributed.eval_runner import RayOptions, ray_runner
+
+    require_ray()  # before anything is read: without Ray, say how to install it
+    if args.rest != "truth":  # the workers build truth-protocol estimators only, for now
+        raise PerchError("--ray runs --rest truth only (the thesis's protocol); run --rest stable without --ray")
+    for flag, n in (("--ray-workers", args.ray_workers), ("--ray-cpus-per-worker", args.ray_cpus_per_worker)):
+        if n is not None and n < 1:
+            raise PerchError(f"{flag} must be at least 1, got {n}")
+    ray_options = RayOptions(args.ray or None, args.ray_workers, args.ray_cpus_per_worker)
+    return ray_runner(ray_options, args.weights, args.device, config)
