@@ -176,7 +176,8 @@ def test_a_deterministic_failure_is_recorded_once_and_not_retried(ray_cluster, s
 @pytest.mark.ray
 def test_estimate_many_streams_results_and_failures(ray_cluster, shared, caffe_weights):
     from perch_warp import Engine, EngineConfig, load_mesh, load_rgb
-    from perch_warp.camera import camera_from_entry, read_camera_json
+    from perch_warp.bop.inout import read_camera_json
+    from perch_warp.camera import camera_from_entry
     from perch_warp.distributed import EstimateRequest, estimate_many
     from perch_warp.search_space import SearchSpace
     from perch_warp.table import RestingPose, Table
