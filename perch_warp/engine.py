@@ -299,7 +299,7 @@ class Engine:
             wall_s = time.perf_counter() - t_start
             if probe is not None:  # a diagnostic: timed apart, not part of the search's total
                 t_probe = time.perf_counter()
-                service = over_rests.with_rest(first, probe_resting or rests[top[0][4]].pose)
+                service = over_rests.with_rest(first, probe_resting or rests[won].pose)
                 extra["probe"] = probe_cell(service, space, probe, self.search)
                 timings["probe"] = time.perf_counter() - t_probe
         finally:
@@ -313,9 +313,8 @@ class Engine:
             R, tr = model_to_camera(table, rests[p].pose, x, y, yaw)
             cands.append(Candidate(x, y, yaw, sc, pose_matrix(R[0], tr[0]), rests[p].label))
         result = self._result_of(cands, len(space) * len(rests), out, timings, choice, space, assessed)
-        p = top[0][4]
         best = over_rests.per_rest_best(outs)
-        result.resting = RestingChoice(rests[p], p, rests, best, [o.evaluated for o in outs])
+        result.resting = RestingChoice(rests[won], won, rests, best, [o.evaluated for o in outs])
         return result
 
     def score(

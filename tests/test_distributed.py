@@ -14,6 +14,7 @@ import sys
 
 import numpy as np
 import pytest
+from _procs import sigkill_once_written
 
 from perch_warp import bop
 from perch_warp.distributed import cluster
@@ -209,29 +210,13 @@ def test_estimate_many_streams_results_and_failures(ray_cluster, shared, caffe_w
 def test_a_driver_killed_with_sigkill_resumes_without_repeating_finished_targets(serial, shared, tmp_path):
     """`eval --ray` in its own process (its own local cluster) killed with SIGKILL once a target is journalled:
     the same command rerun does only what is left, and the results equal the serial run's."""
-    import os
-    import signal
     import subprocess
-    import time
 
     dataset = shared / "data" / "ycbv"
     cmd = [sys.executable, "-m", "perch_warp", "eval", "--dataset", str(dataset), "--out", str(tmp_path), *EVAL_ARGS]
     cmd += ["--scenes", *map(str, SCENES), "--objects", *map(str, OBJECTS), "--no-plots", "--ray", "--ray-workers", "1"]
     proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, start_new_session=True)
-    journal = tmp_path / "targets.jsonl"
-    try:
-        deadline = time.time() + 600
-        while time.time() < deadline and proc.poll() is None:
-            if journal.exists() and journal.read_text().count("\n") >= 1:
-                break
-            time.sleep(0.1)
-        os.kill(proc.pid, signal.SIGKILL)
-    finally:
-        proc.wait()
-        try:  # the killed driver's own Ray processes (its session) go with it
-            os.killpg(proc.pid, signal.SIGKILL)
-        except ProcessLookupError:
-            pass
+    sigkill_once_written(proc, tmp_path / "targets.jsonl", 1, 600, group=True)
     first = _journal(tmp_path)
     assert 1 <= len(first) < 3
     subprocess.run(cmd, check=True, timeout=600, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)  # the rerun

@@ -409,28 +409,18 @@ run_eval({root!r}, {out!r}, Slow())
 
 
 def test_kill_9_mid_run_then_resume_gives_the_full_result(tmp_path):
-    import os
-    import signal
     import subprocess
     import sys
-    import time
     from pathlib import Path
+
+    from _procs import sigkill_once_written
 
     root = write_tiny_dataset(tmp_path / "ds")
     out = tmp_path / "out"
     full = run_eval(root, tmp_path / "full", FakeEstimator())
     script = KILL_SCRIPT.format(tests=str(Path(__file__).parent), root=str(root), out=str(out))
     proc = subprocess.Popen([sys.executable, "-c", script], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-    try:
-        deadline = time.time() + 60
-        while time.time() < deadline:
-            j = out / "targets.jsonl"
-            if j.exists() and j.read_text().count("\n") >= 2:
-                break
-            time.sleep(0.05)
-        os.kill(proc.pid, signal.SIGKILL)
-    finally:
-        proc.wait()
+    sigkill_once_written(proc, out / "targets.jsonl", 2, 60)
     n_before = len(_journal(out))
     assert 2 <= n_before < 5
     est = FakeEstimator()
