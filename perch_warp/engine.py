@@ -40,7 +40,7 @@ from .search import rests as over_rests
 from .search.base import Outcome, top_indices
 from .search.refine import probe as probe_cell
 from .search.refine import refine_peaks
-from .search.scoring import Backends, ScoringService, cpu_threads, photo_on_device
+from .search.scoring import Backends, Photo, ScoringService, cpu_threads, photo_on_device
 from .search_space import SearchSpace
 from .table import RestingPose, Table, model_to_camera, pose_matrix
 
@@ -144,9 +144,24 @@ class Engine:
         choice = self._pick_renderer(camera, table, resting, space or SearchSpace((0.0, 0.0), (0.0, 0.0)))
         return self._service(image_rgb, camera, table, resting, choice.renderer, timings, bar)
 
-    def _service(self, image_rgb, camera, table, resting, renderer: Renderer, timings: dict, bar) -> ScoringService:
-        backends = Backends(self.scorer, self.boxes, self.weights, self.device)
-        photo = photo_on_device(backends, self.config, self.terms, image_rgb, camera, timings)
+    def photo(self, image_rgb: np.ndarray, camera: Camera, timings: dict | None = None) -> Photo:
+        """The photo's features and rarity on the device (image_scale applied), to search several objects
+        in it with `estimate(..., photo=)`: engines with the same weights, device and method settings
+        (EngineConfig) may share it; the mesh plays no part in it."""
+        image_rgb, camera = self._scaled(image_rgb, camera)
+        return photo_on_device(
+            self._backends(), self.config, self.terms, image_rgb, camera, {} if timings is None else timings
+        )
+
+    def _backends(self) -> Backends:
+        return Backends(self.scorer, self.boxes, self.weights, self.device)
+
+    def _service(
+        self, image_rgb, camera, table, resting, renderer: Renderer, timings: dict, bar, photo: Photo | None = None
+    ) -> ScoringService:
+        backends = self._backends()
+        if photo is None:
+            photo = photo_on_device(backends, self.config, self.terms, image_rgb, camera, timings)
         args = (photo, camera, table, resting, renderer, timings, bar)
         return ScoringService(backends, self.config, self.terms, *args)
 
@@ -160,6 +175,7 @@ class Engine:
         progress: bool = False,
         probe: tuple[float, float, float] | None = None,
         probe_resting: RestingPose | None = None,
+        photo: Photo | None = None,
     ) -> Result:
         """Best (x, y, yaw) of the object in the photo; see the module doc for the stages.
 
@@ -168,16 +184,18 @@ class Engine:
         Result.resting. `probe` (x_m, y_m, yaw_rad, table frame), for analysis only: after the search,
         the best pose and score within that pose's cell (one grid step either side at the refinement's
         resolution, not cut to the space) on the same photo, under `probe_resting` (default: the
-        winning resting pose), in info.extra["probe"]; it never changes the answer."""
+        winning resting pose), in info.extra["probe"]; it never changes the answer. `photo`: this photo's
+        features and rarity from `Engine.photo` (several objects in one photo), else computed here."""
         if not isinstance(resting, RestingPose):
-            return self._estimate_rests(image_rgb, camera, table, list(resting), space, progress, probe, probe_resting)
+            rests = list(resting)
+            return self._estimate_rests(image_rgb, camera, table, rests, space, progress, probe, probe_resting, photo)
         timings: dict[str, float] = {}
         image_rgb, camera = self._scaled(image_rgb, camera)
         choice = self._pick_renderer(camera, table, resting, space)
         bar = _bar(progress, f"search on {self.device}")
         t_start = time.perf_counter()
         try:
-            service = self._service(image_rgb, camera, table, resting, choice.renderer, timings, bar)
+            service = self._service(image_rgb, camera, table, resting, choice.renderer, timings, bar, photo)
             out, top = self._search(service, space)
             assessed = self._assess(service, space, out, top[0][:3], resting)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more.
@@ -273,7 +291,9 @@ class Engine:
         smap, conf = assessed
         return Result(cands[0], cands, n, n_scored, timings, self.device, info, confidence=conf, heatmap=smap)
 
-    def _estimate_rests(self, image_rgb, camera, table, rests: list[Rest], space, progress, probe, probe_resting):
+    def _estimate_rests(
+        self, image_rgb, camera, table, rests: list[Rest], space, progress, probe, probe_resting, photo
+    ):
         """`estimate` over several resting poses (search/rests.py), on one scoring service."""
         if not rests:
             raise PerchError("no resting pose to search (an empty list)")
@@ -284,7 +304,7 @@ class Engine:
         bar = _bar(progress, f"search on {self.device}")
         t_start = time.perf_counter()
         try:
-            first = self._service(image_rgb, camera, table, rests[0].pose, choice.renderer, timings, bar)
+            first = self._service(image_rgb, camera, table, rests[0].pose, choice.renderer, timings, bar, photo)
             services = [over_rests.with_rest(first, r.pose) for r in rests]
             outs = over_rests.search_all(services, space, self.search, [r.label for r in rests])
             top = over_rests.joint_top(outs, space, self.config)

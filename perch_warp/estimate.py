@@ -6,11 +6,13 @@ import argparse
 import math
 import re
 from pathlib import Path
+from typing import NamedTuple
 
 from .bop import read_camera_json, truth_instance
 from .camera import camera_from_entry
 from .errors import PerchError
 from .image import image_header_size, load_rgb, save_png
+from .joint import DEFAULT_PEAKS
 from .mesh import load_mesh
 from .options import (
     add_method_arguments,
@@ -27,7 +29,7 @@ from .resting import DEFAULT_ROLL_STEP_DEG, REST_MODES, Rest, stable_rests, trut
 from .table import RestingPose, Table, decompose_on_table, pose_matrix
 
 
-def _image_id(args: argparse.Namespace) -> int | None:
+def image_id_of(args: argparse.Namespace) -> int | None:
     if args.image_id is not None:
         return args.image_id
     m = re.fullmatch(r"0*(\d+)", Path(args.image).stem)
@@ -38,23 +40,26 @@ def run(args: argparse.Namespace) -> int:
     """Entry point of the main command; PerchError propagates to the CLI."""
 
     # Everything is checked before any work: options, output paths, then the inputs from the cheapest.
+    objects = object_list(args)
+    if len(objects) > 1:
+        from .several import run_several  # the several-object command lives in its own module
+
+        return run_several(args, objects)
+    args.mesh, obj_id = objects[0].mesh, objects[0].obj_id
+    if obj_id is not None and args.obj_id is None:
+        args.obj_id = obj_id
     engine_config_from_args(args)
     args.rest = resolve_rest(args)
-    if args.out:
-        check_output_file(args.out, "--out")
-    if args.overlay:
-        check_output_file(args.overlay, "--overlay")
-    if args.heatmap:
-        check_output_file(args.heatmap, "--heatmap")
+    check_outputs(args)
     width, height = image_header_size(args.image)
-    image_id = _image_id(args)
-    entry = _camera_entry(args, image_id)
+    image_id = image_id_of(args)
+    entry = camera_entry(args, image_id)
     camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
     table = Table.from_entry(entry, source=args.camera)
-    truth, truth_resting = _read_truth(args, image_id, table)
+    truth, truth_resting = read_truth(args, image_id, table)
     mesh = load_mesh(args.mesh, args.mesh_units, untextured=args.untextured)
     space = search_space_from_args(args, camera, table)
-    rests = _rests(args, mesh, truth_resting)
+    rests = rests_for(args, mesh, truth_resting)
     image = load_rgb(args.image)
     if image.shape[:2] != (height, width):  # the file changed since its header was read
         raise PerchError(f"image {args.image} changed while being read")
@@ -81,7 +86,7 @@ def run(args: argparse.Namespace) -> int:
     print(renderer_line(result))
     print(conv_line(result))
     if truth is not None:
-        out["truth"] = _truth_error(truth, b, mesh.vertices_m)
+        out["truth"] = truth_error(truth, b, mesh.vertices_m)
     if args.out:
         write_json_atomic(args.out, out)
     if args.overlay:
@@ -93,13 +98,60 @@ def run(args: argparse.Namespace) -> int:
     return 0
 
 
+class ObjectSpec(NamedTuple):
+    """An object to search: its mesh file, a short name, and its BOP id where known (--objects)."""
+
+    mesh: str
+    name: str
+    obj_id: int | None
+
+
+def object_list(args: argparse.Namespace) -> list[ObjectSpec]:
+    """The objects to search: --mesh (once or more) or --models DIR --objects ID ...; refused in one line
+    when neither or both are given, or an id has no mesh."""
+    if args.models is not None or args.objects:
+        if args.mesh:
+            raise PerchError("give either --mesh or --models DIR --objects ID ..., not both")
+        if args.models is None or not args.objects:
+            raise PerchError("--models DIR and --objects ID ... go together (meshes DIR/obj_000001.obj, ...)")
+        if len(set(args.objects)) != len(args.objects):
+            raise PerchError(f"--objects lists an id twice: {args.objects}")
+        specs = []
+        for obj_id in args.objects:
+            path = next(
+                (p for p in (Path(args.models) / f"obj_{obj_id:06d}{x}" for x in (".obj", ".ply")) if p.is_file()), None
+            )
+            if path is None:
+                raise PerchError(f"--objects {obj_id}: no mesh {Path(args.models) / f'obj_{obj_id:06d}.obj'} (or .ply)")
+            specs.append(ObjectSpec(str(path), f"obj {obj_id}", obj_id))
+        return specs
+    if not args.mesh:
+        raise PerchError("no object given: --mesh MESH (once per object) or --models DIR --objects ID ...")
+    names = [Path(m).name for m in args.mesh]
+    # The same mesh twice (two copies of an object) gets numbered names: every output tells them apart.
+    return [
+        ObjectSpec(m, f"{name} #{names[:n].count(name) + 1}" if names.count(name) > 1 else name, None)
+        for n, (m, name) in enumerate(zip(args.mesh, names, strict=True))
+    ]
+
+
+def check_outputs(args: argparse.Namespace) -> None:
+    """The output paths can be written (checked before any work)."""
+    if args.out:
+        check_output_file(args.out, "--out")
+    if args.overlay:
+        check_output_file(args.overlay, "--overlay")
+    if args.heatmap:
+        check_output_file(args.heatmap, "--heatmap")
+
+
 def rest_line(won: Rest, n: int, mode: str) -> str:
     """The resting pose of the answer: which face is down (and roll), the model origin's height."""
     how = f"best of {n} {mode} resting poses" if n > 1 else f"--rest {mode}"
     return f"resting: {won.label}, model origin {won.pose.z_m:.4f} m above the table ({how})"
 
 
-def _rests(args: argparse.Namespace, mesh, truth_resting: RestingPose | None) -> list[Rest]:
+def rests_for(args: argparse.Namespace, mesh, truth_resting: RestingPose | None) -> list[Rest]:
     """The resting poses to search (--rest): the mesh's stable ones, upright, or the ground truth's."""
     lift_m = args.lift_mm / 1000.0
     if args.rest == "truth":
@@ -109,18 +161,20 @@ def _rests(args: argparse.Namespace, mesh, truth_resting: RestingPose | None) ->
     return stable_rests(mesh.vertices_m, mesh.faces, args.roll_step, lift_m=lift_m)
 
 
-def resolve_rest(args: argparse.Namespace) -> str:
+def resolve_rest(args: argparse.Namespace, ids_known: bool | None = None) -> str:
     """--rest as given, else truth with --truth (the thesis's protocol, as before) and stable without;
-    refused (one line) when truth is asked without a ground truth."""
+    refused (one line) when truth is asked without a ground truth (ids_known: the objects' ids are
+    known; default: --obj-id is given)."""
     rest = args.rest or ("truth" if args.truth else "stable")
-    if rest == "truth" and not (args.truth and args.obj_id is not None):
+    ids_known = args.obj_id is not None if ids_known is None else ids_known
+    if rest == "truth" and not (args.truth and ids_known):
         raise PerchError("--rest truth needs --truth scene_gt.json and --obj-id N (the ground truth's resting pose)")
     if not (math.isfinite(args.roll_step) and 0 < args.roll_step <= 360):
         raise PerchError(f"--roll-step must be in (0, 360] degrees, got {args.roll_step}")
     return rest
 
 
-def _camera_entry(args: argparse.Namespace, image_id: int | None) -> dict:
+def camera_entry(args: argparse.Namespace, image_id: int | None) -> dict:
     """The camera entry for the image: by --image-id, else by the image name's number, else the file's only one."""
     try:
         return read_camera_json(args.camera, image_id)
@@ -130,7 +184,7 @@ def _camera_entry(args: argparse.Namespace, image_id: int | None) -> dict:
         raise
 
 
-def _read_truth(args: argparse.Namespace, image_id: int | None, table: Table):
+def read_truth(args: argparse.Namespace, image_id: int | None, table: Table):
     """(R_gt, t_gt, x, y, yaw) and the ground truth's resting pose from --truth/--obj-id, or (None, None)."""
     if not (args.truth or args.obj_id is not None):
         return None, None
@@ -144,7 +198,7 @@ def _read_truth(args: argparse.Namespace, image_id: int | None, table: Table):
     return (g.R_m2c, g.t_m2c_m, gx, gy, gyaw), resting
 
 
-def _truth_error(truth, b, pts) -> dict:
+def truth_error(truth, b, pts) -> dict:
     """The estimate's errors against the ground truth, printed as one line."""
     R_gt, t_gt, gx, gy, gyaw = truth
     err = {
@@ -184,7 +238,31 @@ def _write_overlay(path, engine, image, camera, b, truth, out: dict) -> None:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("image", help="RGB photo (PNG/JPEG)")
-    p.add_argument("--mesh", required=True, help="object mesh: textured OBJ, PLY with vertex colours, PLY/GLB with UVs")
+    p.add_argument(
+        "--mesh",
+        action="append",
+        default=None,
+        help="object mesh: textured OBJ, PLY with vertex colours, PLY/GLB with UVs; once per object to find "
+        "several objects in the photo (each object's search, then the joint step)",
+    )
+    p.add_argument(
+        "--models", default=None, metavar="DIR", help="meshes folder (BOP: DIR/obj_000001.obj), with --objects"
+    )
+    p.add_argument(
+        "--objects",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="ID",
+        help="object ids to find in --models (several: the joint step; with --truth, their ground truths)",
+    )
+    p.add_argument(
+        "--joint-peaks",
+        type=int,
+        default=DEFAULT_PEAKS,
+        help=f"several objects: each object's best distinct peaks (refined) the joint step chooses among "
+        f"(default: {DEFAULT_PEAKS}; at least --refine-peaks)",
+    )
     p.add_argument(
         "--mesh-units", default="auto", choices=["auto", "mm", "m"], help="mesh length unit (default: auto by size)"
     )

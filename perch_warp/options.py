@@ -271,13 +271,14 @@ def search_space_from_args(args: argparse.Namespace, camera, table):
     return space
 
 
-def build_engine(args: argparse.Namespace, mesh, quiet: bool = False):
-    """Weights, device and engine from the method options, saying what was chosen."""
+def build_engine(args: argparse.Namespace, mesh, quiet: bool = False, config=None, weights=None):
+    """Weights, device and engine from the method options (or the `config` and loaded `weights` given),
+    saying what was chosen."""
     from .engine import Engine, default_device  # as in engine_config_from_args
     from .features import load_feature_weights
 
-    config = engine_config_from_args(args)
-    weights = load_feature_weights(args.weights)
+    config = config or engine_config_from_args(args)
+    weights = weights or load_feature_weights(args.weights)
     device = args.device or default_device()
     engine = Engine(mesh, weights, device, config)
     if not quiet:

@@ -178,6 +178,33 @@ BAD_ESTIMATE: list[tuple[str, Callable[[Path, Path], dict], str]] = [
         "add them to the camera file (or, for a BOP dataset",
     ),  # fmt: skip (not the nonexistent --table)
     ("mesh units wrong", lambda s, t: {"extra": ["--mesh-units", "mm"]}, "read as mm (given)"),
+    # several objects (issue 19 part 2)
+    (
+        "--mesh and --models",
+        lambda s, t: {"extra": ["--models", str(s / "models"), "--objects", "1"]},
+        "give either --mesh or --models DIR --objects ID ..., not both",
+    ),  # fmt: skip
+    (
+        "--objects 7 has no mesh",
+        lambda s, t: {"mesh": None, "extra": ["--models", str(s / "models"), "--objects", "7"]},
+        "--objects 7: no mesh",
+    ),  # fmt: skip
+    ("--objects without --models", lambda s, t: {"mesh": None, "extra": ["--objects", "1"]}, "go together"),
+    (
+        "several with --obj-id",
+        lambda s, t: {"truth": s / "scene_gt.json", "extra": ["--mesh", str(s / "models" / "obj_000001.obj")]},
+        "--obj-id names one object",
+    ),  # fmt: skip
+    (
+        "several with --no-refine",
+        lambda s, t: {"extra": ["--mesh", str(s / "models" / "obj_000001.obj")]},
+        "several objects need their peaks refined: drop --no-refine",
+    ),  # fmt: skip
+    (
+        "joint peaks 0",
+        lambda s, t: {"extra": ["--mesh", str(s / "models" / "obj_000001.obj"), "--joint-peaks", "0"]},
+        "--joint-peaks must be at least 1, got 0",
+    ),  # fmt: skip
 ]
 
 
@@ -188,10 +215,10 @@ def _estimate_args(scene: Path, tmp: Path, spec: dict) -> list[str]:
         spec["touch"].write_text("")
     out = spec.get("out", tmp / "out" / "sub" / "r.json")
     overlay = spec.get("overlay", tmp / "out" / "sub" / "o.png")
+    mesh = spec.get("mesh", scene / "models" / "obj_000001.obj")
     args = [
         str(spec.get("image", scene / "rgb" / "000001.png")),
-        "--mesh",
-        str(spec.get("mesh", scene / "models" / "obj_000001.obj")),
+        *(["--mesh", str(mesh)] if mesh is not None else []),
         "--camera",
         str(spec.get("camera", scene / "scene_camera.json")),
         "--out",

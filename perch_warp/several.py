@@ -1,0 +1,177 @@
+"""The main command with several objects: `python -m perch_warp IMAGE --mesh a.obj --mesh b.obj ...` or
+`--models DIR --objects 1 3 9`: each object's search on one photo, the joint step (perch_warp.objects,
+perch_warp.joint), one JSON with every object, one overlay with all of them, a heat map per object."""
+
+from __future__ import annotations
+
+import argparse
+import math
+from pathlib import Path
+
+from .camera import camera_from_entry
+from .errors import PerchError
+from .estimate import (
+    ObjectSpec,
+    camera_entry,
+    check_outputs,
+    image_id_of,
+    read_truth,
+    resolve_rest,
+    rest_line,
+    rests_for,
+    truth_error,
+)
+from .features import load_feature_weights
+from .image import image_header_size, load_rgb, save_png
+from .mesh import load_mesh
+from .objects import ObjectAnswer, estimate_objects, joint_config
+from .options import build_engine, engine_config_from_args, search_space_from_args
+from .outputs import check_output_file
+from .overlay import caption, overlay_rendering
+from .report import log, timing_line, write_json_atomic
+from .table import Table
+
+# Overlay colours, one per object in order (then repeated).
+COLORS = [
+    ("magenta", (255, 0, 255)),
+    ("cyan", (0, 200, 255)),
+    ("orange", (255, 160, 0)),
+    ("green", (120, 255, 0)),
+    ("red", (255, 60, 60)),
+    ("violet", (160, 110, 255)),
+]
+
+
+def run_several(args: argparse.Namespace, objects: list[ObjectSpec]) -> int:
+    """The several-object command (module doc); PerchError propagates to the CLI."""
+    if args.obj_id is not None:
+        raise PerchError("--obj-id names one object; with several, --models DIR --objects ID ... name them")
+    if args.truth and any(o.obj_id is None for o in objects):
+        raise PerchError("--truth with several objects needs --models DIR --objects ID ... (their ids in --truth)")
+    if args.joint_peaks < 1:
+        raise PerchError(f"--joint-peaks must be at least 1, got {args.joint_peaks}")
+    config = joint_config(engine_config_from_args(args), args.joint_peaks)
+    args.rest = resolve_rest(args, ids_known=all(o.obj_id is not None for o in objects))
+    check_outputs(args)
+    if args.heatmap:
+        for n, o in enumerate(objects):
+            check_output_file(heatmap_path(args.heatmap, n, o), "--heatmap")
+    width, height = image_header_size(args.image)
+    image_id = image_id_of(args)
+    entry = camera_entry(args, image_id)
+    camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
+    table = Table.from_entry(entry, source=args.camera)
+    space = search_space_from_args(args, camera, table)
+    meshes, truths, restings = [], [], []
+    for o in objects:
+        args.obj_id = o.obj_id
+        truth, truth_resting = read_truth(args, image_id, table) if args.truth else (None, None)
+        mesh = load_mesh(o.mesh, args.mesh_units, untextured=args.untextured)
+        rests = rests_for(args, mesh, truth_resting)
+        meshes.append(mesh)
+        truths.append(truth)
+        restings.append(rests)
+    args.obj_id = None
+    image = load_rgb(args.image)
+    if image.shape[:2] != (height, width):
+        raise PerchError(f"image {args.image} changed while being read")
+    weights = load_feature_weights(args.weights)
+    engines = [build_engine(args, m, args.quiet or n > 0, config, weights) for n, m in enumerate(meshes)]
+    if not args.quiet:
+        log(f"search: {space.describe()}")
+        log(f"objects: {len(objects)}, each with its best {config.refine_peaks} distinct peaks refined")
+    searched = [r[0].pose if len(r) == 1 else r for r in restings]
+    answers, choice = estimate_objects(
+        engines, [o.name for o in objects], image, camera, table, searched, space, progress=not args.quiet
+    )
+    out = {"image": str(args.image), "rest": args.rest, "objects": [], "joint": choice.to_dict()}
+    for n, (o, a) in enumerate(zip(objects, answers, strict=True)):
+        entry = _object_entry(o, a, restings[n], args.rest)
+        print(_object_line(n, o, a))
+        print("  " + rest_line(_won(a, restings[n]), len(restings[n]), args.rest))
+        print("  " + a.result.confidence.line() + ("" if not a.changed else " (of the object's own best)"))
+        print("  " + timing_line(a.result))
+        if truths[n] is not None:
+            print("  ", end="")
+            entry["truth"] = truth_error(truths[n], a.best, meshes[n].vertices_m)
+        out["objects"].append(entry)
+    print(joint_line(choice, objects, answers))
+    if args.out:
+        write_json_atomic(args.out, out)
+    if args.overlay:
+        _write_overlay(args.overlay, engines, image, camera, objects, answers)
+    if args.heatmap:
+        _write_heatmaps(args.heatmap, image, camera, table, objects, answers, truths)
+    return 0
+
+
+def _won(a: ObjectAnswer, rests: list):
+    """The Rest of the joint answer (its candidate's label among several; the only one otherwise)."""
+    if a.best.rest is None:
+        return rests[0]
+    return next(r for r in rests if r.label == a.best.rest)
+
+
+def _object_entry(o: ObjectSpec, a: ObjectAnswer, rests: list, mode: str) -> dict:
+    """One object's JSON: its joint answer as "pose", its own search's result beside it."""
+    entry = {"name": o.name, "mesh": o.mesh, "obj_id": o.obj_id, "resting": _won(a, rests).to_dict()}
+    entry.update(a.result.to_dict())
+    entry["pose"] = a.best.to_dict()
+    entry["joint"] = {
+        "peak": a.pick,
+        "changed": a.changed,
+        "own_best": a.result.best.to_dict(),
+        "peaks": [c.to_dict() for c in a.peaks],
+    }
+    return entry
+
+
+def _object_line(n: int, o: ObjectSpec, a: ObjectAnswer) -> str:
+    b = a.best
+    moved = f" [joint step: peak {a.pick + 1} of {len(a.peaks)}, own best score {a.result.best.score:.4f}]"
+    return (
+        f"{o.name}: x = {b.x_m:+.4f} m, y = {b.y_m:+.4f} m, yaw = {math.degrees(b.yaw_rad):.1f} deg (table frame), "
+        f"score {b.score:.4f}" + (moved if a.changed else "")
+    )
+
+
+def joint_line(choice, objects: list[ObjectSpec], answers: list[ObjectAnswer]) -> str:
+    """The joint step in one line: how it chose, what it changed, what conflicts remain."""
+    changed = [o.name for o, a in zip(objects, answers, strict=True) if a.changed]
+    line = f"joint step: {choice.method} over {choice.combinations} combinations; " + (
+        "changed " + ", ".join(changed) if changed else "every object keeps its own best"
+    )
+    for i, j, why in choice.conflicts:
+        line += f"; conflict left: {objects[i].name} and {objects[j].name} ({why})"
+    return line
+
+
+def _write_overlay(path, engines, image, camera, objects, answers) -> None:
+    """Every object's joint answer over the photo, one colour each."""
+    pic = image
+    lines = []
+    for n, (e, o, a) in enumerate(zip(engines, objects, answers, strict=True)):
+        name, color = COLORS[n % len(COLORS)]
+        rgb, mask = e.render(camera, a.best.T_m2c)
+        pic = overlay_rendering(pic, rgb, mask, color=color)
+        b = a.best
+        lines.append(
+            f"{o.name} ({name}): x {b.x_m:+.3f} m  y {b.y_m:+.3f} m  yaw {math.degrees(b.yaw_rad):.0f} deg"
+            f"  score {b.score:.3f}" + ("  (changed by the joint step)" if a.changed else "")
+        )
+    save_png(path, caption(pic, lines))
+
+
+def heatmap_path(path: str, n: int, o: ObjectSpec) -> Path:
+    """One heat map per object: --heatmap a.png gives a_1_obj_1.png, a_2_obj_3.png, ... (object number, then
+    its id or the mesh's stem)."""
+    p = Path(path)
+    label = f"obj_{o.obj_id}" if o.obj_id is not None else Path(o.mesh).stem
+    return p.with_name(f"{p.stem}_{n + 1}_{label}{p.suffix}")
+
+
+def _write_heatmaps(path, image, camera, table, objects, answers, truths) -> None:
+    from .heatmap import write_heatmap  # matplotlib: imported only when a heat map is asked for
+
+    for n, (o, a, truth) in enumerate(zip(objects, answers, truths, strict=True)):
+        write_heatmap(heatmap_path(path, n, o), image, camera, table, a.result, None if truth is None else truth[2:4])

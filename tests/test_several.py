@@ -1,0 +1,79 @@
+"""Several objects in one call (issue 19 part 2): the CLI end to end on the demo scene, on Warp's CPU device.
+
+The demo box is searched twice, as two objects: both searches find the same best place, which one image
+region cannot explain twice, so the joint step must keep one object's own best and move the other to a
+peak that conflicts with it in neither footprint nor silhouette."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from perch_warp.cli import main
+from perch_warp.demo import demo_scene, write_scene
+from perch_warp.joint import footprint, footprint_overlap_m
+from perch_warp.mesh import load_mesh
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory) -> tuple[Path, object]:
+    d = tmp_path_factory.mktemp("several")
+    sc = demo_scene(seed=2)
+    write_scene(sc, d)
+    return d, sc
+
+
+def _args(d: Path, sc, meshes: int, out: Path, extra: list[str]) -> list[str]:
+    gx, gy, _ = sc.truth_xy_yaw
+    x, y = round(gx, 2), round(gy, 2)
+    region = ["--x-range", f"{x - 0.2}", f"{x + 0.06}", "--y-range", f"{y - 0.06}", f"{y + 0.18}"]
+    mesh = str(d / "models" / "obj_000001.obj")
+    return [
+        str(d / "rgb" / "000001.png"),
+        *(a for _ in range(meshes) for a in ("--mesh", mesh)),
+        "--camera", str(d / "scene_camera.json"),
+        "--device", "cpu", "--search", "pruned", "--xy-step", "0.02", "--yaw-step", "45", "--rest", "upright",
+        "--refine-xy", "0.01", "--refine-yaw", "15",
+        *region, "--out", str(out), "--quiet", *extra,
+    ]  # fmt: skip
+
+
+def test_two_objects_one_place_the_joint_step_separates_them(scene, tmp_path, capsys):
+    d, sc = scene
+    assert main(_args(d, sc, 1, tmp_path / "one.json", ["--refine-peaks", "4"])) == 0
+    one = json.loads((tmp_path / "one.json").read_text())
+    pics = ["--overlay", str(tmp_path / "o.png"), "--heatmap", str(tmp_path / "h.png")]
+    assert main(_args(d, sc, 2, tmp_path / "two.json", ["--joint-peaks", "4", *pics])) == 0
+    printed = capsys.readouterr().out
+    two = json.loads((tmp_path / "two.json").read_text())
+    a, b = two["objects"]
+    # Each object's own search is the one-object search with the same peaks refined.
+    for o in (a, b):
+        assert o["joint"]["own_best"] == one["pose"]
+        assert sorted(p["score"] for p in o["joint"]["peaks"]) == sorted(p["score"] for p in one["refine"]["peaks"])
+    # Both wanted the same place: the first keeps it, the second moves to another peak.
+    assert a["pose"] == one["pose"] and not a["joint"]["changed"]
+    assert b["joint"]["changed"] and b["joint"]["peak"] > 0
+    assert b["pose"] == b["joint"]["peaks"][b["joint"]["peak"]]
+    assert two["joint"]["method"] == "exact" and two["joint"]["combinations"] == len(a["joint"]["peaks"]) ** 2
+    assert two["joint"]["conflicts"] == [] and two["joint"]["picks"] == [0, b["joint"]["peak"]]
+    assert math.hypot(a["pose"]["x_m"] - b["pose"]["x_m"], a["pose"]["y_m"] - b["pose"]["y_m"]) >= 0.05
+    assert "joint step: exact over" in printed and "changed obj_000001.obj #2" in printed
+    assert Image.open(tmp_path / "o.png").size[0] == sc.camera.width
+    assert sorted(p.name for p in tmp_path.glob("h_*.png")) == ["h_1_obj_000001.png", "h_2_obj_000001.png"]
+    # The answers' footprints on the table overlap by no more than the tolerance.
+    hull = load_mesh(str(d / "models" / "obj_000001.obj")).hull_points_m()
+    polys = [footprint(sc.table, _pose(o["pose"]), hull) for o in (a, b)]
+    assert footprint_overlap_m(*polys) <= 0.01
+
+
+def _pose(p: dict) -> np.ndarray:
+    T = np.eye(4)
+    T[:3, :3] = np.asarray(p["cam_R_m2c"]).reshape(3, 3)
+    T[:3, 3] = np.asarray(p["cam_t_m2c_mm"]) / 1000.0
+    return T
