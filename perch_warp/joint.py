@@ -20,6 +20,7 @@ its peak with the fewest such conflicts). The result says which.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 from collections.abc import Callable, Sequence
@@ -27,6 +28,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .errors import PerchError
 from .table import Table
 
 EXACT_MAX = 100_000  # combinations enumerated exactly; beyond, the greedy choice
@@ -62,6 +64,13 @@ class JointChoice:
             "total_score": self.total_score,
             "conflicts": [{"objects": [i, j], "why": why} for i, j, why in self.conflicts],
         }
+
+
+def joint_config(config, peaks: int):
+    """EngineConfig `config` with at least `peaks` distinct peaks refined and reported (several objects)."""
+    if not config.refine:
+        raise PerchError("several objects need their peaks refined: drop --no-refine")
+    return dataclasses.replace(config, refine_peaks=max(config.refine_peaks, peaks), top_k=max(config.top_k, peaks))
 
 
 def convex_hull_2d(points: np.ndarray) -> np.ndarray:

@@ -9,7 +9,6 @@ another object's answer in every better combination.
 
 from __future__ import annotations
 
-import dataclasses
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -44,13 +43,6 @@ class ObjectAnswer:
         return self.pick != 0
 
 
-def joint_config(config, peaks: int):
-    """`config` with at least `peaks` distinct peaks refined and reported (a several-object search)."""
-    if not config.refine:
-        raise PerchError("several objects need their peaks refined: drop --no-refine")
-    return dataclasses.replace(config, refine_peaks=max(config.refine_peaks, peaks), top_k=max(config.top_k, peaks))
-
-
 def refined_peaks(result: Result) -> list[Candidate]:
     """The object's distinct refined peaks, best first: the first entries of its top-k (search.refine)."""
     refine = result.info.extra.get("refine", {})
@@ -68,10 +60,12 @@ def estimate_objects(
     space: SearchSpace,
     progress: bool = False,
     overlap_m: float = joint.DEFAULT_OVERLAP_M,
+    probes: Sequence[dict] | None = None,
 ) -> tuple[list[ObjectAnswer], joint.JointChoice]:
     """Every object's answer in one photo (module doc). engines[i] searches object names[i] under
     restings[i] (a RestingPose or a list of perch_warp.resting.Rest, as Engine.estimate takes); all engines
-    share weights, device and method settings (built with joint_config), so the photo is computed once."""
+    share weights, device and method settings (built with joint_config), so the photo is computed once.
+    probes[i] (for evaluation): Engine.estimate's probe and probe_resting for object i."""
     if not engines:
         raise PerchError("no object to search")
     first = engines[0]
@@ -80,8 +74,9 @@ def estimate_objects(
             raise PerchError("the objects' engines must share device, weights and method settings")
     photo = first.photo(image_rgb, camera)
     answers = []
-    for engine, name, resting in zip(engines, names, restings, strict=True):
-        result = engine.estimate(image_rgb, camera, table, resting, space, progress=progress, photo=photo)
+    for n, (engine, name, resting) in enumerate(zip(engines, names, restings, strict=True)):
+        probe = probes[n] if probes is not None else {}
+        result = engine.estimate(image_rgb, camera, table, resting, space, progress=progress, photo=photo, **probe)
         answers.append(ObjectAnswer(name, result, refined_peaks(result), 0))
     choice = choose_jointly(engines, answers, camera, table, overlap_m)
     for a, pick in zip(answers, choice.picks, strict=True):

@@ -23,8 +23,9 @@ from .estimate import (
 )
 from .features import load_feature_weights
 from .image import image_header_size, load_rgb, save_png
+from .joint import joint_config
 from .mesh import load_mesh
-from .objects import ObjectAnswer, estimate_objects, joint_config
+from .objects import ObjectAnswer, estimate_objects
 from .options import build_engine, engine_config_from_args, search_space_from_args
 from .outputs import check_output_file
 from .overlay import caption, overlay_rendering

@@ -6,8 +6,10 @@ peak that conflicts with it in neither footprint nor silhouette."""
 
 from __future__ import annotations
 
+import csv
 import json
 import math
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -77,3 +79,43 @@ def _pose(p: dict) -> np.ndarray:
     T[:3, :3] = np.asarray(p["cam_R_m2c"]).reshape(3, 3)
     T[:3, 3] = np.asarray(p["cam_t_m2c_mm"]) / 1000.0
     return T
+
+
+def test_eval_joint_pairs_each_target_with_its_own_answer(scene, tmp_path, capsys):
+    """eval --joint on a BOP dataset whose one image holds two copies of the demo box at the same pose (obj 1
+    and obj 2, the same mesh): both searches find that place, the joint step moves one of them away, and the
+    summary pairs each target's joint answer with its own; a second run resumes with nothing to do."""
+    d, sc = scene
+    ds = tmp_path / "ds"
+    scene_dir = ds / "test" / "000001"
+    shutil.copytree(d / "rgb", scene_dir / "rgb")
+    shutil.copy(d / "scene_camera.json", scene_dir)
+    shutil.copytree(d / "models", ds / "models")
+    shutil.copy(ds / "models" / "obj_000001.obj", ds / "models" / "obj_000002.obj")
+    gt = json.loads((d / "scene_gt.json").read_text())
+    gt["1"].append({**gt["1"][0], "obj_id": 2})
+    (scene_dir / "scene_gt.json").write_text(json.dumps(gt))
+    gx, gy, _ = sc.truth_xy_yaw
+    x, y = round(gx, 2), round(gy, 2)
+    args = [
+        "eval", "--dataset", str(ds), "--out", str(tmp_path / "out"), "--joint", "--joint-peaks", "4",
+        "--device", "cpu", "--search", "pruned", "--xy-step", "0.02", "--yaw-step", "45",
+        "--refine-xy", "0.01", "--refine-yaw", "15", "--no-plots",
+        "--x-range", f"{x - 0.2}", f"{x + 0.06}", "--y-range", f"{y - 0.06}", f"{y + 0.18}",
+    ]  # fmt: skip
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    joint = summary["joint"]
+    assert joint["n"] == 2 and joint["n_changed"] == 1
+    (changed,) = joint["changed"]
+    assert changed["own_adds_mm"] < 20.0 < changed["adds_mm"]  # its own answer was right; the place was taken
+    assert joint["own"]["adds_below_2cm_pct"] == 100.0 and joint["joint"]["adds_below_2cm_pct"] == 50.0
+    assert joint["auc_gain"] < 0 and joint["below_2cm_gain_pct"] == -50.0
+    with (tmp_path / "out" / "per_target.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    assert sorted(r["joint_changed"] for r in rows) == ["False", "True"]
+    assert all(float(r["own_adds_mm"]) < 20.0 for r in rows)
+    assert "Joint step (eval --joint): changed 1 of 2 answers" in printed
+    assert main(args) == 0  # resumed: both targets journalled, nothing searched again
+    assert "resuming" not in capsys.readouterr().err

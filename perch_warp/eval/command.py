@@ -10,6 +10,7 @@ from pathlib import Path
 
 from ..camera import Camera
 from ..errors import PerchError
+from ..joint import DEFAULT_PEAKS, joint_config
 from ..options import add_method_arguments, add_search_arguments, engine_config_from_args, search_space_from_args
 from ..outputs import check_output_dir
 from ..resting import DEFAULT_ROLL_STEP_DEG
@@ -72,6 +73,21 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_ROLL_STEP_DEG,
         help=f"--rest stable: roll step (deg) on a curved side (default: {DEFAULT_ROLL_STEP_DEG:g})",
     )
+    j = parser.add_argument_group("several objects")
+    j.add_argument(
+        "--joint",
+        action="store_true",
+        help="search every image's targets together and make their answers consistent (the joint step: "
+        "no two footprints on one table space, no image region explained twice); the summary says, paired "
+        "per target, what it changed",
+    )
+    j.add_argument(
+        "--joint-peaks",
+        type=int,
+        default=DEFAULT_PEAKS,
+        help=f"--joint: each object's best distinct peaks (refined) the joint step chooses among "
+        f"(default: {DEFAULT_PEAKS})",
+    )
     d = parser.add_argument_group("distributed (Ray; docs/distributed.md)")
     d.add_argument(
         "--ray",
@@ -101,10 +117,19 @@ def run(args: argparse.Namespace) -> int:
     config = engine_config_from_args(args)  # validates the method options before any work
     if not (math.isfinite(args.roll_step) and 0 < args.roll_step <= 360):
         raise PerchError(f"--roll-step must be in (0, 360] degrees, got {args.roll_step}")
+    if args.joint:
+        if args.joint_peaks < 1:
+            raise PerchError(f"--joint-peaks must be at least 1, got {args.joint_peaks}")
+        if args.ray is not None:
+            raise PerchError("--joint runs without --ray (an image's targets are searched together, in this process)")
+        config = joint_config(config, args.joint_peaks)
     options = {k: v for k, v in sorted(vars(args).items()) if k not in NOT_SEARCH_OPTIONS and k not in _EVAL_ARGS}
     if args.rest == "truth":  # as before --rest existed, so that earlier OUTDIRs still resume
         options.pop("rest")
         options.pop("roll_step")
+    if not args.joint:  # likewise for --joint
+        options.pop("joint")
+        options.pop("joint_peaks")
 
     def space_fn(camera: Camera, table: Table, resting: RestingPose):
         # The region depends on the view and the table only: never on the ground truth.
@@ -114,6 +139,10 @@ def run(args: argparse.Namespace) -> int:
         return EngineEstimator(model_paths, args.weights, args.device, config, args.rest, args.roll_step)
 
     runner = _ray_runner(args, config) if args.ray is not None else None
+    if args.joint:
+        from .joint import joint_runner  # imports the engine (Warp): only when asked for
+
+        runner = joint_runner(make_estimator)
     command = shlex.join(["python", "-m", "perch_warp", *sys.argv[1:]])
     try:
         summary = evaluate(

@@ -99,6 +99,7 @@ def compute_errors(selection: Selection, done: dict, tables: TableCache, geometr
                     "n_evaluated": d.details.get("n_evaluated"),
                     **_diagnostics(d),
                     "rest": d.details.get("rest"),  # the resting pose that won under --rest stable
+                    **_joint_columns(d, t, pts),
                     "R_est": d.R,
                     "t_est_m": d.t_m,
                     "R_gt": t.R_gt,
@@ -126,6 +127,15 @@ def _diagnostics(d: Done) -> dict:
         "est_points": sil.get("points"),
         "est_edge_share": sil.get("edge_share"),
     }
+
+
+def _joint_columns(d: Done, t, pts: np.ndarray) -> dict:
+    """Under eval --joint: whether the joint step changed the answer and the ADD-S of the object's own best."""
+    j = d.details.get("joint")
+    if j is None:
+        return {"joint_changed": None, "own_adds_mm": None}
+    R, tr = np.asarray(j["own_R_m2c"], dtype=np.float64), np.asarray(j["own_t_m2c_m"], dtype=np.float64)
+    return {"joint_changed": bool(j["changed"]), "own_adds_mm": 1000.0 * pose_error.add_s(R, tr, t.R_gt, t.t_gt_m, pts)}
 
 
 _PER_TARGET_COLUMNS = [
@@ -159,6 +169,8 @@ _PER_TARGET_COLUMNS = [
     "rest",
     "confidence",
     "confidence_exact",
+    "joint_changed",
+    "own_adds_mm",
 ]
 
 
@@ -274,7 +286,61 @@ def summarize(rows: list[dict], ds: bop.Dataset, selection: Selection) -> dict:
     by_label = label_metrics(rows)
     if by_label:
         summary["by_label"] = by_label
+    joint = joint_summary(rows)
+    if joint is not None:
+        summary["joint"] = joint
     return summary
+
+
+def paired_interval(diff: np.ndarray, n_boot: int = 10_000, seed: int = 0) -> tuple[float, float]:
+    """95 % percentile bootstrap interval of the mean of paired differences (targets resampled)."""
+    diff = np.asarray(diff, dtype=np.float64)
+    rng = np.random.default_rng(seed)
+    means = diff[rng.integers(0, len(diff), (n_boot, len(diff)))].mean(axis=1)
+    lo, hi = np.percentile(means, [2.5, 97.5])
+    return float(lo), float(hi)
+
+
+def joint_summary(rows: list[dict]) -> dict | None:
+    """eval --joint, paired per target: the objects' own answers against the joint step's (ADD-S AUC and
+    < 2 cm, with 95 % bootstrap intervals of the differences), and each changed target; None otherwise."""
+    rs = [r for r in rows if r.get("own_adds_mm") is not None]
+    if not rs:
+        return None
+    own = np.array([r["own_adds_mm"] for r in rs]) / 1000.0
+    joint = np.array([r["adds_mm"] for r in rs]) / 1000.0
+
+    def auc_terms(e):  # each target's share of the exact AUC (%)
+        return 100.0 * np.clip(1.0 - e / AUC_MAX_THRESHOLD_M, 0.0, None)
+
+    d_auc = auc_terms(joint) - auc_terms(own)
+    d_ok = 100.0 * ((joint < ADDS_THRESHOLD_M).astype(float) - (own < ADDS_THRESHOLD_M))
+    changed = [r for r in rs if r["joint_changed"]]
+    return {
+        "n": len(rs),
+        "n_changed": len(changed),
+        "own": {
+            "auc": pose_error.auc(own, AUC_MAX_THRESHOLD_M),
+            "adds_below_2cm_pct": pose_error.accuracy_below(own, ADDS_THRESHOLD_M),
+        },
+        "joint": {
+            "auc": pose_error.auc(joint, AUC_MAX_THRESHOLD_M),
+            "adds_below_2cm_pct": pose_error.accuracy_below(joint, ADDS_THRESHOLD_M),
+        },
+        "auc_gain": float(d_auc.mean()),
+        "auc_gain_ci95": paired_interval(d_auc),
+        "below_2cm_gain_pct": float(d_ok.mean()),
+        "below_2cm_gain_ci95": paired_interval(d_ok),
+        "changed": [
+            {
+                "key": [r["scene_id"], r["im_id"], r["inst"]],
+                "obj_id": r["obj_id"],
+                "own_adds_mm": r["own_adds_mm"],
+                "adds_mm": r["adds_mm"],
+            }
+            for r in changed
+        ],
+    }
 
 
 def label_metrics(rows: list[dict]) -> dict[str, dict[str, dict]]:
@@ -387,6 +453,15 @@ def _table_notes(summary: dict, fmt) -> list[str]:
             f"Confidence (margin, right = ADD-S < 2 cm): the most confident 50 % are "
             f"{fmt(sep['top50_accuracy_pct'], '.1f')} % right, 80 %: {fmt(sep['top80_accuracy_pct'], '.1f')} %, "
             f"all: {fmt(sep['accuracy_pct'], '.1f')} %; ROC AUC {auc} (n = {sep['n']})."
+        )
+    joint = summary.get("joint")
+    if joint:
+        better = sum(c["adds_mm"] < c["own_adds_mm"] for c in joint["changed"])
+        notes.append(
+            f"Joint step (eval --joint): changed {joint['n_changed']} of {joint['n']} answers ({better} closer to the "
+            f"truth); ADD-S AUC {joint['own']['auc']:.2f} -> {joint['joint']['auc']:.2f} (paired gain "
+            f"{joint['auc_gain']:+.2f}, 95 % CI {joint['auc_gain_ci95'][0]:+.2f}..{joint['auc_gain_ci95'][1]:+.2f}); "
+            f"< 2 cm {joint['own']['adds_below_2cm_pct']:.1f} -> {joint['joint']['adds_below_2cm_pct']:.1f} %."
         )
     outside = p.get("gt_outside_region") if p else 0
     if outside:

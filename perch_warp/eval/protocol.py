@@ -116,17 +116,31 @@ class EngineEstimator:
         self.prepare(obj_id)
         return self._engines[obj_id]
 
+    def searched(self, target: Target, resting: RestingPose):
+        """What the target's search runs over: its ground truth's resting pose, or the mesh's stable ones."""
+        return self._rests[target.obj_id] if self.rest == "stable" else resting
+
+    @staticmethod
+    def probe(target: Target, table: Table, resting: RestingPose) -> dict:
+        """Engine.estimate's diagnostics arguments: the ground truth's cell, scored after the search on
+        the same photo. Under --rest stable it is scored under the truth's own resting pose, so a "search
+        miss" there also means that pose is not among the stable ones searched."""
+        _, xg, yg, yawg = decompose_on_table(table, target.R_gt, target.t_gt_m)
+        return {"probe": (xg, yg, yawg), "probe_resting": resting}
+
     def __call__(self, target: Target, image_rgb, camera, table, resting, space) -> Estimate:
         self.prepare(target.obj_id)
         engine = self._engines[target.obj_id]
-        # Diagnostics only: the ground truth's cell is scored after the search, on the same photo.
-        _, xg, yg, yawg = decompose_on_table(table, target.R_gt, target.t_gt_m)
-        # Under --rest stable the probe scores the truth's cell under the truth's own resting pose, so a
-        # "search miss" there also means that pose is not among the stable ones searched.
-        searched = self._rests[target.obj_id] if self.rest == "stable" else resting
-        probe = {"probe": (xg, yg, yawg), "probe_resting": resting}
-        res = engine.estimate(image_rgb, camera, table, searched, space, progress=False, **probe)
-        T = np.asarray(res.T_m2c, dtype=np.float64)
+        searched = self.searched(target, resting)
+        res = engine.estimate(
+            image_rgb, camera, table, searched, space, progress=False, **self.probe(target, table, resting)
+        )
+        return self.estimate_of(engine, res, camera, res.best)
+
+    def estimate_of(self, engine, res, camera: Camera, answer) -> Estimate:
+        """The Estimate of `answer` (a Candidate: the search's best, or the joint step's choice) with the
+        search's details (Result res) and the answer's silhouette."""
+        T = np.asarray(answer.T_m2c, dtype=np.float64)
         details = {
             "n_candidates": int(res.n_candidates),
             "n_evaluated": res.info.evaluated,  # scored: fewer when pruned
@@ -138,13 +152,14 @@ class EngineEstimator:
             details["refine"] = res.info.extra["refine"]
         details["probe"] = res.info.extra["probe"]
         if res.resting is not None:
-            details["rest"] = res.resting.label
-            details["rest_z_m"] = res.resting.z_m
+            won = answer.rest or res.resting.label
+            details["rest"] = won
+            details["rest_z_m"] = next(r.pose.z_m for r in res.resting.rests if r.label == won)
         details["confidence"] = res.confidence.to_dict()
         t = time.perf_counter()
         details["silhouette"] = silhouette_stats(engine, camera, T)
         diagnostics_s = res.timings["probe"] + time.perf_counter() - t
-        return Estimate(T[:3, :3], T[:3, 3], float(res.score), details, diagnostics_s, res.heatmap)
+        return Estimate(T[:3, :3], T[:3, 3], float(answer.score), details, diagnostics_s, res.heatmap)
 
 
 def silhouette_stats(engine, camera: Camera, T_m2c: np.ndarray) -> dict:
