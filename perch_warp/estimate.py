@@ -184,13 +184,15 @@ def camera_entry(args: argparse.Namespace, image_id: int | None) -> dict:
         raise
 
 
-def read_truth(args: argparse.Namespace, image_id: int | None, table: Table):
-    """(R_gt, t_gt, x, y, yaw) and the ground truth's resting pose from --truth/--obj-id, or (None, None)."""
-    if not (args.truth or args.obj_id is not None):
+def read_truth(args: argparse.Namespace, image_id: int | None, table: Table, obj_id: int | None = None):
+    """(R_gt, t_gt, x, y, yaw) and the ground truth's resting pose from --truth and --obj-id (or `obj_id`),
+    or (None, None)."""
+    obj_id = args.obj_id if obj_id is None else obj_id
+    if not (args.truth or obj_id is not None):
         return None, None
     if not args.truth:
         raise PerchError("--obj-id needs --truth (a BOP scene_gt.json)")
-    g = truth_instance(args.truth, args.image_id if args.image_id is not None else image_id, args.obj_id)
+    g = truth_instance(args.truth, args.image_id if args.image_id is not None else image_id, obj_id)
     try:
         resting, gx, gy, gyaw = decompose_on_table(table, g.R_m2c, g.t_m2c_m)
     except PerchError as e:
@@ -238,31 +240,7 @@ def _write_overlay(path, engine, image, camera, b, truth, out: dict) -> None:
 
 def add_arguments(p: argparse.ArgumentParser) -> None:
     p.add_argument("image", help="RGB photo (PNG/JPEG)")
-    p.add_argument(
-        "--mesh",
-        action="append",
-        default=None,
-        help="object mesh: textured OBJ, PLY with vertex colours, PLY/GLB with UVs; once per object to find "
-        "several objects in the photo (each object's search, then the joint step)",
-    )
-    p.add_argument(
-        "--models", default=None, metavar="DIR", help="meshes folder (BOP: DIR/obj_000001.obj), with --objects"
-    )
-    p.add_argument(
-        "--objects",
-        type=int,
-        nargs="+",
-        default=None,
-        metavar="ID",
-        help="object ids to find in --models (several: the joint step; with --truth, their ground truths)",
-    )
-    p.add_argument(
-        "--joint-peaks",
-        type=int,
-        default=DEFAULT_PEAKS,
-        help=f"several objects: each object's best distinct peaks (refined) the joint step chooses among "
-        f"(default: {DEFAULT_PEAKS}; at least --refine-peaks)",
-    )
+    _add_object_arguments(p)
     p.add_argument(
         "--mesh-units", default="auto", choices=["auto", "mm", "m"], help="mesh length unit (default: auto by size)"
     )
@@ -317,3 +295,32 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         "as a top-down map with the best peaks numbered (cells the search did not score are grey)",
     )
     g.add_argument("--quiet", action="store_true", help="no progress bar or notes on stderr")
+
+
+def _add_object_arguments(p: argparse.ArgumentParser) -> None:
+    """What to find: one mesh, or several (the joint step)."""
+    p.add_argument(
+        "--mesh",
+        action="append",
+        default=None,
+        help="object mesh: textured OBJ, PLY with vertex colours, PLY/GLB with UVs; once per object to find "
+        "several objects in the photo (each object's search, then the joint step)",
+    )
+    p.add_argument(
+        "--models", default=None, metavar="DIR", help="meshes folder (BOP: DIR/obj_000001.obj), with --objects"
+    )
+    p.add_argument(
+        "--objects",
+        type=int,
+        nargs="+",
+        default=None,
+        metavar="ID",
+        help="object ids to find in --models (several: the joint step; with --truth, their ground truths)",
+    )
+    p.add_argument(
+        "--joint-peaks",
+        type=int,
+        default=DEFAULT_PEAKS,
+        help=f"several objects: each object's best distinct peaks (refined) the joint step chooses among "
+        f"(default: {DEFAULT_PEAKS}; at least --refine-peaks)",
+    )

@@ -63,16 +63,7 @@ def run_several(args: argparse.Namespace, objects: list[ObjectSpec]) -> int:
     camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
     table = Table.from_entry(entry, source=args.camera)
     space = search_space_from_args(args, camera, table)
-    meshes, truths, restings = [], [], []
-    for o in objects:
-        args.obj_id = o.obj_id
-        truth, truth_resting = read_truth(args, image_id, table) if args.truth else (None, None)
-        mesh = load_mesh(o.mesh, args.mesh_units, untextured=args.untextured)
-        rests = rests_for(args, mesh, truth_resting)
-        meshes.append(mesh)
-        truths.append(truth)
-        restings.append(rests)
-    args.obj_id = None
+    meshes, truths, restings = _load_objects(args, objects, image_id, table)
     image = load_rgb(args.image)
     if image.shape[:2] != (height, width):
         raise PerchError(f"image {args.image} changed while being read")
@@ -86,16 +77,8 @@ def run_several(args: argparse.Namespace, objects: list[ObjectSpec]) -> int:
         engines, [o.name for o in objects], image, camera, table, searched, space, progress=not args.quiet
     )
     out = {"image": str(args.image), "rest": args.rest, "objects": [], "joint": choice.to_dict()}
-    for n, (o, a) in enumerate(zip(objects, answers, strict=True)):
-        entry = _object_entry(o, a, restings[n], args.rest)
-        print(_object_line(n, o, a))
-        print("  " + rest_line(_won(a, restings[n]), len(restings[n]), args.rest))
-        print("  " + a.result.confidence.line() + ("" if not a.changed else " (of the object's own best)"))
-        print("  " + timing_line(a.result))
-        if truths[n] is not None:
-            print("  ", end="")
-            entry["truth"] = truth_error(truths[n], a.best, meshes[n].vertices_m)
-        out["objects"].append(entry)
+    for o, a, mesh, truth, rests in zip(objects, answers, meshes, truths, restings, strict=True):
+        out["objects"].append(_report_object(o, a, mesh, truth, rests, args.rest))
     print(joint_line(choice, objects, answers))
     if args.out:
         write_json_atomic(args.out, out)
@@ -104,6 +87,35 @@ def run_several(args: argparse.Namespace, objects: list[ObjectSpec]) -> int:
     if args.heatmap:
         _write_heatmaps(args.heatmap, image, camera, table, objects, answers, truths)
     return 0
+
+
+def _load_objects(args: argparse.Namespace, objects: list[ObjectSpec], image_id: int | None, table: Table):
+    """Each object's mesh, ground truth (with --truth; else None) and resting poses to search."""
+    meshes, truths, restings = [], [], []
+    for o in objects:
+        truth, truth_resting = read_truth(args, image_id, table, o.obj_id) if args.truth else (None, None)
+        mesh = load_mesh(o.mesh, args.mesh_units, untextured=args.untextured)
+        rests = rests_for(args, mesh, truth_resting)
+        if not args.quiet:
+            log(f"{o.name}: {mesh.source}, units {mesh.units_note}, {len(mesh.faces)} faces; "
+                f"resting poses ({args.rest}): {len(rests)}")  # fmt: skip
+        meshes.append(mesh)
+        truths.append(truth)
+        restings.append(rests)
+    return meshes, truths, restings
+
+
+def _report_object(o: ObjectSpec, a: ObjectAnswer, mesh, truth, rests: list, mode: str) -> dict:
+    """Print one object's lines; its JSON entry (with the truth's errors where known)."""
+    entry = _object_entry(o, a, rests, mode)
+    print(_object_line(o, a))
+    print("  " + rest_line(_won(a, rests), len(rests), mode))
+    print("  " + a.result.confidence.line() + ("" if not a.changed else " (of the object's own best)"))
+    print("  " + timing_line(a.result))
+    if truth is not None:
+        print("  ", end="")
+        entry["truth"] = truth_error(truth, a.best, mesh.vertices_m)
+    return entry
 
 
 def _won(a: ObjectAnswer, rests: list):
@@ -127,7 +139,7 @@ def _object_entry(o: ObjectSpec, a: ObjectAnswer, rests: list, mode: str) -> dic
     return entry
 
 
-def _object_line(n: int, o: ObjectSpec, a: ObjectAnswer) -> str:
+def _object_line(o: ObjectSpec, a: ObjectAnswer) -> str:
     b = a.best
     moved = f" [joint step: peak {a.pick + 1} of {len(a.peaks)}, own best score {a.result.best.score:.4f}]"
     return (

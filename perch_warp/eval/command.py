@@ -73,6 +73,26 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         default=DEFAULT_ROLL_STEP_DEG,
         help=f"--rest stable: roll step (deg) on a curved side (default: {DEFAULT_ROLL_STEP_DEG:g})",
     )
+    d = parser.add_argument_group("distributed (Ray; docs/distributed.md)")
+    d.add_argument(
+        "--ray",
+        nargs="?",
+        const="",
+        default=None,
+        metavar="ADDRESS",
+        help="search the targets on Ray workers: one per GPU, or per --ray-cpus-per-worker CPUs; without "
+        "ADDRESS a local cluster on this machine, 'auto' the one `ray start` made here, or HOST:PORT",
+    )
+    d.add_argument("--ray-workers", type=int, metavar="N", help="at most N workers (default: as many as fit)")
+    d.add_argument(
+        "--ray-cpus-per-worker", type=int, default=1, metavar="N", help="CPU slots (and threads) per worker (1)"
+    )
+    _add_joint_arguments(parser)
+    add_method_arguments(parser)
+    add_search_arguments(parser)
+
+
+def _add_joint_arguments(parser: argparse.ArgumentParser) -> None:
     j = parser.add_argument_group("several objects")
     j.add_argument(
         "--joint",
@@ -88,22 +108,6 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help=f"--joint: each object's best distinct peaks (refined) the joint step chooses among "
         f"(default: {DEFAULT_PEAKS})",
     )
-    d = parser.add_argument_group("distributed (Ray; docs/distributed.md)")
-    d.add_argument(
-        "--ray",
-        nargs="?",
-        const="",
-        default=None,
-        metavar="ADDRESS",
-        help="search the targets on Ray workers: one per GPU, or per --ray-cpus-per-worker CPUs; without "
-        "ADDRESS a local cluster on this machine, 'auto' the one `ray start` made here, or HOST:PORT",
-    )
-    d.add_argument("--ray-workers", type=int, metavar="N", help="at most N workers (default: as many as fit)")
-    d.add_argument(
-        "--ray-cpus-per-worker", type=int, default=1, metavar="N", help="CPU slots (and threads) per worker (1)"
-    )
-    add_method_arguments(parser)
-    add_search_arguments(parser)
 
 
 def run(args: argparse.Namespace) -> int:
@@ -117,19 +121,13 @@ def run(args: argparse.Namespace) -> int:
     config = engine_config_from_args(args)  # validates the method options before any work
     if not (math.isfinite(args.roll_step) and 0 < args.roll_step <= 360):
         raise PerchError(f"--roll-step must be in (0, 360] degrees, got {args.roll_step}")
-    if args.joint:
-        if args.joint_peaks < 1:
-            raise PerchError(f"--joint-peaks must be at least 1, got {args.joint_peaks}")
-        if args.ray is not None:
-            raise PerchError("--joint runs without --ray (an image's targets are searched together, in this process)")
-        config = joint_config(config, args.joint_peaks)
+    config = _joint_setup(args, config)
     options = {k: v for k, v in sorted(vars(args).items()) if k not in NOT_SEARCH_OPTIONS and k not in _EVAL_ARGS}
     if args.rest == "truth":  # as before --rest existed, so that earlier OUTDIRs still resume
         options.pop("rest")
         options.pop("roll_step")
     if not args.joint:  # likewise for --joint
-        options.pop("joint")
-        options.pop("joint_peaks")
+        options = {k: v for k, v in options.items() if k not in ("joint", "joint_peaks")}
 
     def space_fn(camera: Camera, table: Table, resting: RestingPose):
         # The region depends on the view and the table only: never on the ground truth.
@@ -180,6 +178,17 @@ def run(args: argparse.Namespace) -> int:
         )
         return 1
     return 0
+
+
+def _joint_setup(args: argparse.Namespace, config):
+    """--joint's checks and its EngineConfig (every object's distinct peaks refined); config unchanged without it."""
+    if not args.joint:
+        return config
+    if args.joint_peaks < 1:
+        raise PerchError(f"--joint-peaks must be at least 1, got {args.joint_peaks}")
+    if args.ray is not None:
+        raise PerchError("--joint runs without --ray (an image's targets are searched together, in this process)")
+    return joint_config(config, args.joint_peaks)
 
 
 def _ray_runner(args: argparse.Namespace, config):
