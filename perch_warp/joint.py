@@ -3,10 +3,12 @@
 Each object's own search gives its best distinct peaks, each refined (search/refine.refine_peaks), so
 their scores compare. Two answers *conflict* when
 
-- their footprints on the table overlap by more than `overlap_m` (default 1 cm): two objects cannot
-  occupy the same table space, and the tolerance lets neighbours touch although each estimate may be a
-  grid step off. A footprint is the convex hull of the mesh's hull points projected on the table plane
-  (table frame, metres);
+- their footprints on the table overlap by more than `overlap_m` (default 1 cm) and so do their heights
+  above it: two objects cannot occupy the same space, and the tolerance lets neighbours touch although
+  each estimate may be a grid step off. A footprint is the convex hull of the posed mesh's hull points
+  projected on the table plane (table frame, metres), its height their z range; an object standing on
+  another (a can on a lying box, as in YCB-Video's frame 000002 under the ground truth's resting
+  poses) shares footprint but not height;
 - or the farther one is hidden behind the nearer one over more than 1 - α of its silhouette: its
   score, the mean of its best α share of points, would then be made of pixels the nearer object
   explains (one image region explained twice). "Nearer" compares the objects' centres' distances from
@@ -44,6 +46,7 @@ class Peak:
     footprint_m: np.ndarray  # (P, 2) convex polygon on the table, table frame, metres, counter-clockwise
     mask: np.ndarray  # (H, W) bool: the rendered silhouette in the photo
     distance_m: float  # the object's centre from the camera, metres
+    z_m: tuple[float, float] = (-math.inf, math.inf)  # lowest and highest point above the table, metres
 
 
 @dataclass
@@ -98,10 +101,20 @@ def _cross(o, a, b) -> float:
 def footprint(table: Table, T_m2c: np.ndarray, hull_m: np.ndarray) -> np.ndarray:
     """The object's footprint on the table: its hull points (model frame, metres) posed by T_m2c (model ->
     camera), taken to the table frame and projected on the plane z = 0; a convex polygon (P, 2), metres."""
+    return convex_hull_2d(_in_table(table, T_m2c, hull_m)[:, :2])
+
+
+def height_range(table: Table, T_m2c: np.ndarray, hull_m: np.ndarray) -> tuple[float, float]:
+    """The posed object's lowest and highest point above the table top (table frame z, metres)."""
+    z = _in_table(table, T_m2c, hull_m)[:, 2]
+    return float(z.min()), float(z.max())
+
+
+def _in_table(table: Table, T_m2c: np.ndarray, points_m: np.ndarray) -> np.ndarray:
+    """Model-frame points posed by T_m2c (model -> camera), in the table frame (metres)."""
     T = np.asarray(T_m2c, dtype=np.float64)
-    p_cam = np.asarray(hull_m, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
-    p_table = (p_cam - table.t_t2c_m) @ table.R_t2c  # R^T (p - t) for row vectors
-    return convex_hull_2d(p_table[:, :2])
+    p_cam = np.asarray(points_m, dtype=np.float64) @ T[:3, :3].T + T[:3, 3]
+    return (p_cam - table.t_t2c_m) @ table.R_t2c  # R^T (p - t) for row vectors
 
 
 def footprint_overlap_m(a: np.ndarray, b: np.ndarray) -> float:
@@ -129,7 +142,8 @@ def hidden_share(near_mask: np.ndarray, far_mask: np.ndarray) -> float:
 def conflict(p: Peak, q: Peak, alpha: float, overlap_m: float = DEFAULT_OVERLAP_M) -> str | None:
     """Why answers p and q cannot both hold (module doc), or None."""
     depth = footprint_overlap_m(p.footprint_m, q.footprint_m)
-    if depth > overlap_m:
+    height = min(p.z_m[1], q.z_m[1]) - max(p.z_m[0], q.z_m[0])
+    if depth > overlap_m and height > overlap_m:
         return f"footprints overlap by {depth * 100:.1f} cm"
     near, far = (p, q) if p.distance_m <= q.distance_m else (q, p)
     hidden = hidden_share(near.mask, far.mask)

@@ -102,4 +102,7 @@ def _peak(engine: Engine, cand: Candidate, camera: Camera, table: Table) -> join
     T = cand.T_m2c
     _, mask = engine.render(camera, T)
     centre_m = engine.hull_m.mean(axis=0) @ T[:3, :3].T + T[:3, 3]
-    return joint.Peak(cand.score, joint.footprint(table, T, engine.hull_m), mask, float(np.linalg.norm(centre_m)))
+    heights = joint.height_range(table, T, engine.hull_m)
+    return joint.Peak(
+        cand.score, joint.footprint(table, T, engine.hull_m), mask, float(np.linalg.norm(centre_m)), heights
+    )

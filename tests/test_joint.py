@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import math
 
@@ -15,6 +16,7 @@ from perch_warp.joint import (
     convex_hull_2d,
     footprint,
     footprint_overlap_m,
+    height_range,
     hidden_share,
 )
 from perch_warp.table import Table, rot_z
@@ -157,6 +159,7 @@ def test_footprint_of_a_posed_box():
     T[:3, :3] = table.R_t2c @ R_m2t
     T[:3, 3] = table.R_t2c @ t_m2t + table.t_t2c_m
     got = footprint(table, T, corners)
+    assert height_range(table, T, corners) == pytest.approx((0.0, 0.01))
     want = rectangle(0.1, -0.05, 0.04, 0.02, yaw)
     assert len(got) == 4
     for p in want:
@@ -183,3 +186,8 @@ def test_hidden_share_and_conflict():
     assert conflict(p, touching, alpha=0.5) is None  # 5 mm overlap: within the 1 cm tolerance
     overlapping = Peak(0.6, rectangle(0.02, 0, 0.05, 0.05, 0), np.zeros((h, w), bool), 0.9)
     assert "footprints overlap by 3.0 cm" == conflict(p, overlapping, alpha=0.5)
+    # Stacked: the same footprint, but one stands on the other (heights 0-4 cm and 4-12 cm): no conflict.
+    low = Peak(0.8, apart[0], np.zeros((h, w), bool), 0.7, (0.0, 0.04))
+    high = Peak(0.6, rectangle(0.01, 0, 0.05, 0.05, 0), np.zeros((h, w), bool), 0.9, (0.04, 0.12))
+    assert conflict(low, high, alpha=0.5) is None
+    assert "footprints overlap" in conflict(low, dataclasses.replace(high, z_m=(0.02, 0.10)), alpha=0.5)
