@@ -34,7 +34,7 @@ from .render import BoxProjector, DeviceMesh, Renderer, auto_renderer, make_rend
 from .resting import Rest
 from .result import Candidate, RestingChoice, Result, SearchInfo
 from .score import FeatureScorer, auto_conv
-from .score_map import ScoreMap, knowledge, score_map
+from .score_map import ScoreMap, knowledge, score_map, score_map_over_rests
 from .score_terms import parse_score
 from .search import rests as over_rests
 from .search.base import Outcome, top_indices
@@ -314,8 +314,11 @@ class Engine:
             if self.config.refine:
                 top, extra["refine"] = over_rests.refine_joint(services, space, top, self.search, self.config)
             top = top[: self.config.top_k]
-            won = top[0][4]  # heat map and confidence over the winning resting pose's grid
-            assessed = self._assess(services[won], space, outs[won], top[0][:3], rests[won].pose)
+            won = top[0][4]  # the confidence over the winning resting pose's grid; the heat map over all
+            _, conf = self._assess(services[won], space, outs[won], top[0][:3], rests[won].pose)
+            ks = [knowledge(o, space, self.search) for o in outs]
+            smap, _ = score_map_over_rests(ks, space)
+            assessed = (smap, conf)
             wall_s = time.perf_counter() - t_start
             if probe is not None:  # a diagnostic: timed apart, not part of the search's total
                 t_probe = time.perf_counter()

@@ -150,3 +150,28 @@ def score_map(k: Knowledge, space: SearchSpace) -> ScoreMap:
     best, upper, arg = best_over_rest(k)
     yaw = np.where(np.isfinite(best), yaws[np.clip(arg, 0, None)], np.nan)
     return ScoreMap(xs, ys, space.xy_step_m, best, upper, yaw, k.why_unknown if np.isnan(best).any() else "")
+
+
+def stacked(ks: list[Knowledge]) -> Knowledge:
+    """Several searches of one (x, y, yaw) space (one per resting pose) as one Knowledge over
+    (x, y, pose, yaw): best_over_rest then takes the best over resting pose and yaw per cell."""
+    nx, ny, n_yaw = ks[0].shape
+
+    def stack(arrays: list[np.ndarray]) -> np.ndarray:
+        return np.stack([a.reshape(nx, ny, n_yaw) for a in arrays], axis=2).reshape(-1)
+
+    why = next((k.why_unknown for k in ks if k.why_unknown), "")
+    return Knowledge(stack([k.value for k in ks]), stack([k.upper for k in ks]), (nx, ny, len(ks), n_yaw), why)
+
+
+def score_map_over_rests(ks: list[Knowledge], space: SearchSpace) -> tuple[ScoreMap, np.ndarray]:
+    """The ScoreMap of one space searched under several resting poses (ks: each pose's Knowledge): the
+    best over resting pose and yaw per cell; and, per cell, the index of the pose of that best (-1 where
+    the cell's best is not finite)."""
+    xs, ys, yaws = space.axes()
+    best, upper, arg = best_over_rest(stacked(ks))
+    finite = np.isfinite(best)
+    pose, k_yaw = np.divmod(np.clip(arg, 0, None), len(yaws))
+    yaw = np.where(finite, yaws[k_yaw], np.nan)
+    why = next((k.why_unknown for k in ks if k.why_unknown), "") if np.isnan(best).any() else ""
+    return ScoreMap(xs, ys, space.xy_step_m, best, upper, yaw, why), np.where(finite, pose, -1)

@@ -12,6 +12,7 @@ from perch_warp.confidence import DIFFERENT_XY_M, DIFFERENT_YAW_RAD, SYMMETRY_TO
 from perch_warp.demo import demo_scene
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.pose_error import adi
+from perch_warp.resting import stable_rests
 from perch_warp.score_map import Knowledge, best_over_rest
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import rot_z
@@ -144,3 +145,26 @@ def test_settle_scores_only_what_could_beat_the_known_best():
 
     assert conf_mod.settle(k, np.ones(4, bool), score_fn) == 1 and asked == [1]
     assert k.set_max(np.ones(4, bool))[:2] == (0.5, 0)
+
+
+def test_heat_map_over_several_resting_poses_is_the_best_over_pose_and_yaw(scene, random_weights):
+    rests = stable_rests(scene.mesh.vertices_m, scene.mesh.faces)[:3]
+    space = _space(scene)
+    xs, ys, yaws = space.axes()
+    x, y, yaw = space.candidates()
+    for search in ("exhaustive", "pruned"):
+        engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(search=search, refine=False, top_k=2))
+        hm = engine.estimate(scene.image, scene.camera, scene.table, rests, space).heatmap
+        ref = np.stack(
+            [engine.score(scene.image, scene.camera, scene.table, r.pose, x, y, yaw) for r in rests]
+        ).reshape(len(rests), len(xs), len(ys), len(yaws))
+        known = ~np.isnan(hm.best)
+        assert np.array_equal(hm.best[known], ref.max(axis=(0, 3))[known])
+        assert np.all(ref.max(axis=(0, 3))[~known] <= hm.upper[~known])
+        if search == "exhaustive":
+            assert known.all()
+            # The yaw drawn is the yaw of the best (pose, yaw) of the cell.
+            best = (
+                ref.reshape(len(rests), len(xs), len(ys), len(yaws)).transpose(1, 2, 0, 3).reshape(len(xs), len(ys), -1)
+            )
+            assert np.array_equal(hm.best_yaw_rad, yaws[best.argmax(axis=2) % len(yaws)])
