@@ -20,6 +20,7 @@ from .options import (
     build_engine,
     engine_config_from_args,
     search_space_from_args,
+    table_with_extent,
 )
 from .outputs import check_output_file
 from .overlay import TRUTH_COLOR, caption, mask_contour, overlay_mask, overlay_rendering
@@ -55,7 +56,7 @@ def run(args: argparse.Namespace) -> int:
     image_id = image_id_of(args)
     entry = camera_entry(args, image_id)
     camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
-    table = Table.from_entry(entry, source=args.camera)
+    table = table_with_extent(args, Table.from_entry(entry, source=args.camera))
     truth, truth_resting = read_truth(args, image_id, table)
     mesh = load_mesh(args.mesh, args.mesh_units, untextured=args.untextured)
     space = search_space_from_args(args, camera, table)
@@ -65,7 +66,7 @@ def run(args: argparse.Namespace) -> int:
         raise PerchError(f"image {args.image} changed while being read")
     if not args.quiet:
         log(f"mesh: {mesh.source}, units {mesh.units_note}, {len(mesh.faces)} faces")
-        log(f"search: {space.describe()}")
+        log(f"search: {space.describe()}" + extent_note(table))
         log(f"resting poses ({args.rest}): {len(rests)}: " + "; ".join(r.label for r in rests))
     engine = build_engine(args, mesh, args.quiet)
     # One resting pose goes the single-pose way (bit for bit today's search); several, search/rests.py.
@@ -143,6 +144,13 @@ def check_outputs(args: argparse.Namespace) -> None:
         check_output_file(args.overlay, "--overlay")
     if args.heatmap:
         check_output_file(args.heatmap, "--heatmap")
+
+
+def extent_note(table: Table) -> str:
+    """What the search log adds when the table has an extent."""
+    if table.extent_m is None:
+        return ""
+    return f"; only where the model origin is on the table extent ({len(table.extent_m)} corners)"
 
 
 def rest_line(won: Rest, n: int, mode: str) -> str:
@@ -257,6 +265,15 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         type=int,
         default=None,
         help="entry of a multi-image scene_camera.json (default: from the image name)",
+    )
+    p.add_argument(
+        "--table-extent",
+        type=float,
+        nargs=4,
+        default=None,
+        metavar=("X0", "X1", "Y0", "Y1"),
+        help="the table top is this rectangle of the table frame (metres): poses whose model origin lies "
+        "outside are never scored (default: the camera file's table_extent_mm polygon, else the whole plane)",
     )
     p.add_argument(
         "--lift-mm", type=float, default=0.0, help="the surface the object stands on is this high above the table (mm)"

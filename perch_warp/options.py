@@ -7,6 +7,8 @@ import argparse
 import math
 from pathlib import Path
 
+import numpy as np
+
 from .errors import PerchError
 from .report import log
 from .search_space import SearchSpace
@@ -257,9 +259,8 @@ def search_space_from_args(args: argparse.Namespace, camera, table):
     yaw_lo, yaw_hi = (math.radians(a) for a in args.yaw_range)
     if args.x_range is None and args.y_range is None:
         space = SearchSpace.visible_table(camera, table, args.xy_step, math.radians(args.yaw_step), clip_m=args.clip)
-        space = SearchSpace(
-            space.x_range_m, space.y_range_m, args.xy_step, (yaw_lo, yaw_hi), math.radians(args.yaw_step)
-        )
+        x_range, y_range = _within_extent(space, table)
+        space = SearchSpace(x_range, y_range, args.xy_step, (yaw_lo, yaw_hi), math.radians(args.yaw_step))
         check_search_size(space, getattr(args, "max_candidates", DEFAULT_MAX_CANDIDATES))
         return space
     if args.x_range is None or args.y_range is None:
@@ -269,6 +270,36 @@ def search_space_from_args(args: argparse.Namespace, camera, table):
     )
     check_search_size(space, getattr(args, "max_candidates", DEFAULT_MAX_CANDIDATES))  # validates ranges and steps
     return space
+
+
+def _within_extent(space, table) -> tuple[tuple[float, float], tuple[float, float]]:
+    """The visible region's x and y ranges cut to the table extent's bounding box (snapped outwards to the
+    grid step), when the table has an extent; refused in one line when the two do not meet."""
+    if table.extent_m is None:
+        return space.x_range_m, space.y_range_m
+    step = space.xy_step_m
+    lo = np.floor(table.extent_m.min(axis=0) / step) * step
+    hi = np.ceil(table.extent_m.max(axis=0) / step) * step
+    (x0, x1), (y0, y1) = space.x_range_m, space.y_range_m
+    x_range, y_range = (max(x0, lo[0]), min(x1, hi[0])), (max(y0, lo[1]), min(y1, hi[1]))
+    if x_range[0] > x_range[1] or y_range[0] > y_range[1]:
+        raise PerchError(
+            f"the table extent (x {lo[0]:+.3f}..{hi[0]:+.3f} m, y {lo[1]:+.3f}..{hi[1]:+.3f} m) lies outside the "
+            f"visible table ({space.describe()})"
+        )
+    return (float(x_range[0]), float(x_range[1])), (float(y_range[0]), float(y_range[1]))
+
+
+def table_with_extent(args: argparse.Namespace, table):
+    """The table with --table-extent X0 X1 Y0 Y1 (a rectangle, metres, table frame) when given; it replaces
+    any table_extent_mm of the camera file."""
+    extent = getattr(args, "table_extent", None)
+    if extent is None:
+        return table
+    x0, x1, y0, y1 = extent
+    if not (x0 < x1 and y0 < y1):
+        raise PerchError(f"--table-extent takes X0 X1 Y0 Y1 with X0 < X1 and Y0 < Y1 (metres), got {extent}")
+    return table.with_extent([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
 
 
 def build_engine(args: argparse.Namespace, mesh, quiet: bool = False, config=None, weights=None):

@@ -14,6 +14,7 @@ from .estimate import (
     ObjectSpec,
     camera_entry,
     check_outputs,
+    extent_note,
     image_id_of,
     read_truth,
     resolve_rest,
@@ -26,7 +27,7 @@ from .image import image_header_size, load_rgb, save_png
 from .joint import joint_config
 from .mesh import load_mesh
 from .objects import ObjectAnswer, estimate_objects
-from .options import build_engine, engine_config_from_args, search_space_from_args
+from .options import build_engine, engine_config_from_args, search_space_from_args, table_with_extent
 from .outputs import check_output_file
 from .overlay import caption, overlay_rendering
 from .report import log, timing_line, write_json_atomic
@@ -61,7 +62,7 @@ def run_several(args: argparse.Namespace, objects: list[ObjectSpec]) -> int:
     image_id = image_id_of(args)
     entry = camera_entry(args, image_id)
     camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
-    table = Table.from_entry(entry, source=args.camera)
+    table = table_with_extent(args, Table.from_entry(entry, source=args.camera))
     space = search_space_from_args(args, camera, table)
     meshes, truths, restings = _load_objects(args, objects, image_id, table)
     image = load_rgb(args.image)
@@ -70,7 +71,7 @@ def run_several(args: argparse.Namespace, objects: list[ObjectSpec]) -> int:
     weights = load_feature_weights(args.weights)
     engines = [build_engine(args, m, args.quiet or n > 0, config, weights) for n, m in enumerate(meshes)]
     if not args.quiet:
-        log(f"search: {space.describe()}")
+        log(f"search: {space.describe()}" + extent_note(table))
         log(f"objects: {len(objects)}, each with its best {config.refine_peaks} distinct peaks refined")
     searched = [r[0].pose if len(r) == 1 else r for r in restings]
     answers, choice = estimate_objects(

@@ -36,14 +36,31 @@ def _check_rotation(R: np.ndarray, name: str) -> np.ndarray:
     return u @ vt
 
 
+def _check_extent(extent) -> np.ndarray:
+    """A table extent as a (P, 2) float array of at least 3 finite corners enclosing some area (metres)."""
+    e = np.asarray(extent, dtype=np.float64)
+    if e.ndim != 2 or e.shape[1] != 2 or len(e) < 3 or not np.all(np.isfinite(e)):
+        raise PerchError(f"the table extent must be 3 or more finite [x, y] corners, got {np.asarray(extent).tolist()}")
+    area = 0.5 * abs(float(np.dot(e[:, 0], np.roll(e[:, 1], -1)) - np.dot(e[:, 1], np.roll(e[:, 0], -1))))
+    if area <= 0:
+        raise PerchError(f"the table extent encloses no area: {e.tolist()}")
+    return e
+
+
 @dataclass(frozen=True)
 class Table:
-    """Rigid transform table -> camera: X_cam = R_t2c @ X_table + t_t2c_m (metres)."""
+    """Rigid transform table -> camera: X_cam = R_t2c @ X_table + t_t2c_m (metres); and, where known, the
+    table top's extent: the polygon (P, 2) of the table frame (metres) where an object can rest (None: the
+    whole plane). A candidate whose model origin lies outside it is never scored (issue 17 (i): no
+    object on a wall, a monitor or the floor beyond the table's edge)."""
 
     R_t2c: np.ndarray
     t_t2c_m: np.ndarray
+    extent_m: np.ndarray | None = None
 
     def __post_init__(self) -> None:
+        if self.extent_m is not None:
+            object.__setattr__(self, "extent_m", _check_extent(self.extent_m))
         R = _check_rotation(self.R_t2c, "table rotation (cam_R_w2c)")
         t = np.asarray(self.t_t2c_m, dtype=np.float64).reshape(3)
         if not np.all(np.isfinite(t)):
@@ -57,14 +74,21 @@ class Table:
             )
 
     @classmethod
-    def from_bop(cls, cam_R_w2c, cam_t_w2c_mm) -> Table:
-        """From BOP's `cam_R_w2c` (9 values) and `cam_t_w2c` (3 values, millimetres)."""
+    def from_bop(cls, cam_R_w2c, cam_t_w2c_mm, extent_mm=None) -> Table:
+        """From BOP's `cam_R_w2c` (9 values) and `cam_t_w2c` (3 values, millimetres), and the optional
+        table extent (a list of [x, y] corners in the table frame, millimetres: `table_extent_mm`)."""
         try:
             R = np.asarray(cam_R_w2c, dtype=np.float64).reshape(3, 3)
             t = np.asarray(cam_t_w2c_mm, dtype=np.float64).reshape(3) / 1000.0
         except (ValueError, TypeError):
             raise PerchError("cam_R_w2c must be 9 numbers and cam_t_w2c 3 numbers (mm)") from None
-        return cls(R, t)
+        if extent_mm is None:
+            return cls(R, t)
+        try:
+            extent = np.asarray(extent_mm, dtype=np.float64) / 1000.0
+        except (ValueError, TypeError):
+            raise PerchError("table_extent_mm must be a list of [x, y] corners (mm, table frame)") from None
+        return cls(R, t, extent)
 
     @classmethod
     def from_entry(cls, entry: dict, source: str = "camera") -> Table:
@@ -75,9 +99,28 @@ class Table:
                 "add them to the camera file (or, for a BOP dataset with depth images, use eval, which fits the table)"
             )
         try:
-            return cls.from_bop(entry["cam_R_w2c"], entry["cam_t_w2c"])
+            return cls.from_bop(entry["cam_R_w2c"], entry["cam_t_w2c"], entry.get("table_extent_mm"))
         except PerchError as e:
             raise PerchError(f"{source}: {e}") from None
+
+    def with_extent(self, extent_m) -> Table:
+        """The same table with this extent (polygon (P, 2), table frame, metres)."""
+        return Table(self.R_t2c, self.t_t2c_m, extent_m)
+
+    def contains(self, x_m, y_m) -> np.ndarray:
+        """Whether table points (x_m, y_m arrays, metres) lie on the table top's extent (all where it has none;
+        points on an edge may go either way)."""
+        x, y = np.broadcast_arrays(np.asarray(x_m, dtype=np.float64), np.asarray(y_m, dtype=np.float64))
+        if self.extent_m is None:
+            return np.ones(x.shape, dtype=bool)
+        inside = np.zeros(x.shape, dtype=bool)
+        poly = self.extent_m
+        for (xa, ya), (xb, yb) in zip(poly, np.roll(poly, -1, axis=0), strict=True):
+            crosses = (ya > y) != (yb > y)  # the edge spans the point's height: a ray to +x may cross it
+            with np.errstate(divide="ignore", invalid="ignore"):
+                x_cross = xa + (y - ya) * (xb - xa) / (yb - ya)
+            inside ^= crosses & (x < x_cross)
+        return inside
 
     @property
     def camera_center_table_m(self) -> np.ndarray:

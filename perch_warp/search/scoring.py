@@ -234,7 +234,7 @@ class ScoringService:
 
     def candidates(self, x: np.ndarray, y: np.ndarray, yaw: np.ndarray) -> Candidates:
         """Poses, pixel boxes and feature-grid boxes of candidates (x_m, y_m, yaw_rad arrays) and the
-        indices of those that show at least one feature point."""
+        indices of those that show at least one feature point and stand on the table's extent (if any)."""
         t = time.perf_counter()
         R, tr = model_to_camera(self.table, self.resting, x, y, yaw)
         boxes = self.backends.boxes(self.camera, R, tr)  # = project_boxes(camera, hull_m, R, tr), on the device
@@ -246,6 +246,8 @@ class ScoringService:
             )
         gboxes = grid_boxes(boxes, self.backends.weights.kernel_size, self.config.stride)
         live = np.flatnonzero(gboxes[:, 2] * gboxes[:, 3] > 0)
+        if self.table.extent_m is not None:  # off the table top: no object rests there, never scored
+            live = live[self.table.contains(np.asarray(x)[live], np.asarray(y)[live])]
         self.lap("candidates", t)
         return Candidates(R, tr, boxes, gboxes, live)
 
