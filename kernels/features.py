@@ -56,7 +56,9 @@ class PointLayout:
     of its grid box gbox[c] = (gx0, gy0, gw, gh), row by row, n_points in all; grid cell (gx, gy) is
     pixel (ks // 2 + stride gx, ks // 2 + stride gy), on the candidate only inside its pixel box
     box[c] = (x0, y0, w, h). Kernel #2, the bound (kernels/bound.py) and the raster silhouette
-    (kernels/raster.py: splat_points) take this one struct, so they all see the same points."""
+    (kernels/raster.py: splat_points) take this one struct, so they all see the same points. The
+    rendered mask is not part of it (kernel #2 takes RenderedBoxes beside it): the bound walks the
+    same points before anything is rendered."""
 
     box: wp.array(dtype=wp.vec4i)
     gbox: wp.array(dtype=wp.vec4i)
