@@ -15,7 +15,7 @@ has its own silhouette: any-hit BVH rays for the bvh form, the raster form's own
 
 import warp as wp
 
-from .features import NOT_ON_MASK, feature_point, in_box
+from .features import NOT_ON_MASK, PointLayout, feature_point, in_box
 from .render import PixelRays, pixel_ray_m
 
 
@@ -31,20 +31,15 @@ def silhouette_rarity(rarity: wp.array2d(dtype=float), gx: int, gy: int) -> floa
 def anyhit_points(
     mesh: wp.uint64,
     rays: PixelRays,
-    box: wp.array(dtype=wp.vec4i),
-    gbox: wp.array(dtype=wp.vec4i),
-    pt_off: wp.array(dtype=wp.int32),
-    n_cand: int,
-    ks: int,
-    stride: int,
+    pts: PointLayout,
     out_hit: wp.array(dtype=wp.uint8),
 ):
     """The BVH form's silhouette: 1 where feature point i's pixel ray hits the mesh inside its
     candidate's rendered box, else 0 (kernel #2 reads the mask only inside that box)."""
     i = wp.tid()
-    c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
+    c, gx, gy, u, v = feature_point(pts, i)
     out_hit[i] = wp.uint8(0)
-    if not in_box(box[c], u, v):
+    if not in_box(pts.box[c], u, v):
         return
     # Any hit, not the closest: Warp's any-hit query runs the same ray-triangle test over the same
     # range [0, max_t) as kernel #1's closest-hit query, so it hits exactly when that one does, and
@@ -56,11 +51,7 @@ def anyhit_points(
 @wp.kernel(enable_backward=False)
 def rarity_at_hits(
     hits: wp.array(dtype=wp.uint8),
-    gbox: wp.array(dtype=wp.vec4i),
-    pt_off: wp.array(dtype=wp.int32),
-    n_cand: int,
-    ks: int,
-    stride: int,
+    pts: PointLayout,
     rarity: wp.array2d(dtype=float),
     out: wp.array(dtype=float),
 ):
@@ -71,5 +62,5 @@ def rarity_at_hits(
     if hits[i] == wp.uint8(0):
         out[i] = NOT_ON_MASK
         return
-    c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
+    c, gx, gy, u, v = feature_point(pts, i)
     out[i] = silhouette_rarity(rarity, gx, gy)

@@ -33,7 +33,7 @@ import functools
 
 import warp as wp
 
-from .render import find_candidate
+from .render import RenderedBoxes, find_candidate
 
 # Marks feature points that are not on the candidate's mask; far below any score.
 NOT_ON_MASK = -1.0e30
@@ -50,20 +50,36 @@ class Surround:
     by_fraction: int
 
 
+@wp.struct
+class PointLayout:
+    """Candidates' feature points, flat: candidate c (of n_cand) owns points [pt_off[c], pt_off[c+1])
+    of its grid box gbox[c] = (gx0, gy0, gw, gh), row by row, n_points in all; grid cell (gx, gy) is
+    pixel (ks // 2 + stride gx, ks // 2 + stride gy), on the candidate only inside its pixel box
+    box[c] = (x0, y0, w, h). Kernel #2, the bound (kernels/bound.py) and the raster silhouette
+    (kernels/raster.py: splat_points) take this one struct, so they all see the same points. The
+    rendered mask is not part of it (kernel #2 takes RenderedBoxes beside it): the bound walks the
+    same points before anything is rendered."""
+
+    box: wp.array(dtype=wp.vec4i)
+    gbox: wp.array(dtype=wp.vec4i)
+    pt_off: wp.array(dtype=wp.int32)
+    n_cand: int
+    n_points: int  # pt_off[n_cand], kept for the host's launch size
+    ks: int
+    stride: int
+
+
 @wp.func
-def feature_point(
-    pt_off: wp.array(dtype=wp.int32), n_cand: int, gbox: wp.array(dtype=wp.vec4i), ks: int, stride: int, i: int
-):
-    """Flat feature point i: its candidate c, grid cell (gx, gy) and pixel (u, v). Candidate c owns
-    points [pt_off[c], pt_off[c+1]), its grid box gbox[c] = (gx0, gy0, gw, gh) row by row; kernel #2
+def feature_point(pts: PointLayout, i: int):
+    """Flat feature point i of `pts`: its candidate c, grid cell (gx, gy) and pixel (u, v); kernel #2
     and the silhouette bound (kernels/bound.py) both walk the points in this order."""
-    c = find_candidate(pt_off, n_cand, i)
-    g = gbox[c]
-    local = i - pt_off[c]
+    c = find_candidate(pts.pt_off, pts.n_cand, i)
+    g = pts.gbox[c]
+    local = i - pts.pt_off[c]
     gx = g[0] + local % g[2]
     gy = g[1] + local // g[2]
-    half = ks // 2
-    return c, gx, gy, half + stride * gx, half + stride * gy
+    half = pts.ks // 2
+    return c, gx, gy, half + pts.stride * gx, half + pts.stride * gy
 
 
 @wp.func
@@ -131,26 +147,14 @@ def composite(
 
 
 @wp.func
-def point_to_compare(
-    mask: wp.array(dtype=wp.uint8),
-    pix_off: wp.array(dtype=wp.int32),
-    box: wp.array(dtype=wp.vec4i),
-    gbox: wp.array(dtype=wp.vec4i),
-    pt_off: wp.array(dtype=wp.int32),
-    n_cand: int,
-    ks: int,
-    stride: int,
-    grid_rows: int,
-    grid_cols: int,
-    i: int,
-):
+def point_to_compare(seen: RenderedBoxes, pts: PointLayout, grid_rows: int, grid_cols: int, i: int):
     """Flat feature point i (feature_point): whether it is compared with the photo, the value it
     scores if not, its candidate c, grid cell (gx, gy) and pixel (u, v). Not compared: off the
-    candidate's mask (NOT_ON_MASK), or on it but beyond the photo's feature grid (0: part of the
-    object, but nothing to compare). Both forms of kernel #2 decide by this, so they score the
-    same points."""
-    c, gx, gy, u, v = feature_point(pt_off, n_cand, gbox, ks, stride, i)
-    if not on_mask(mask, pix_off[c], box[c], u, v):
+    candidate's rendered mask (NOT_ON_MASK), or on it but beyond the photo's feature grid (0: part
+    of the object, but nothing to compare). Both forms of kernel #2 decide by this, so they score
+    the same points."""
+    c, gx, gy, u, v = feature_point(pts, i)
+    if not on_mask(seen.mask, seen.pix_off[c], seen.box[c], u, v):
         return False, float(NOT_ON_MASK), c, gx, gy, u, v
     if not in_box(wp.vec4i(0, 0, grid_cols, grid_rows), gx, gy):
         return False, float(0.0), c, gx, gy, u, v
@@ -160,10 +164,7 @@ def point_to_compare(
 @wp.kernel(enable_backward=False)
 def composite_crops(
     image: wp.array2d(dtype=wp.vec3),
-    rgb: wp.array(dtype=wp.vec3),
-    mask: wp.array(dtype=wp.uint8),
-    pix_off: wp.array(dtype=wp.int32),
-    box: wp.array(dtype=wp.vec4i),
+    seen: RenderedBoxes,
     crop: wp.array(dtype=wp.vec4i),
     crop_off: wp.array(dtype=wp.int32),
     sur: Surround,
@@ -180,13 +181,13 @@ def composite_crops(
     n = cr[2] * cr[3]
     base = 3 * crop_off[c] + row * cr[2]
     photo = wp.vec4i(0, 0, image.shape[1], image.shape[0])
-    roff = pix_off[c]
-    rb = box[c]
+    roff = seen.pix_off[c]
+    rb = seen.box[c]
     for col in range(cr[2]):
         x = cr[0] + col
         p = wp.vec3(0.0, 0.0, 0.0)
         if in_box(photo, x, y):
-            p = composite(image, rgb, mask, roff, rb, x, y, sur)
+            p = composite(image, seen.rgb, seen.mask, roff, rb, x, y, sur)
         out[base + col] = p[0]
         out[base + n + col] = p[1]
         out[base + 2 * n + col] = p[2]
@@ -278,17 +279,10 @@ def feature_kernels(C: int):
     @wp.kernel(enable_backward=False, module="unique")
     def score_points(
         image: wp.array2d(dtype=wp.vec3),
-        rgb: wp.array(dtype=wp.vec3),
-        mask: wp.array(dtype=wp.uint8),
-        pix_off: wp.array(dtype=wp.int32),
-        box: wp.array(dtype=wp.vec4i),
-        gbox: wp.array(dtype=wp.vec4i),
-        pt_off: wp.array(dtype=wp.int32),
-        n_cand: int,
+        seen: RenderedBoxes,
+        pts: PointLayout,
         Wt: wp.array(dtype=vecC),
         bias: vecC,
-        ks: int,
-        stride: int,
         relu: int,
         sur: Surround,
         obs_feat: wp.array2d(dtype=vecC),
@@ -297,28 +291,21 @@ def feature_kernels(C: int):
         out: wp.array(dtype=float),
     ):
         i = wp.tid()
-        rows, cols = obs_feat.shape[0], obs_feat.shape[1]
-        compared, value, c, gx, gy, u, v = point_to_compare(
-            mask, pix_off, box, gbox, pt_off, n_cand, ks, stride, rows, cols, i
-        )
+        compared, value, c, gx, gy, u, v = point_to_compare(seen, pts, obs_feat.shape[0], obs_feat.shape[1], i)
         if not compared:
             out[i] = value
             return
-        f = conv_at(image, rgb, mask, pix_off[c], box[c], u, v, Wt, bias, ks, relu, sur)
-        share = window_share(sur, mask, pix_off[c], box[c], u, v, ks)
+        roff = seen.pix_off[c]
+        rb = seen.box[c]
+        f = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, relu, sur)
+        share = window_share(sur, seen.mask, roff, rb, u, v, pts.ks)
         out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy, share)
 
     @wp.kernel(enable_backward=False, module="unique")
     def score_features(
         feat: wp.array(dtype=float),
-        mask: wp.array(dtype=wp.uint8),
-        pix_off: wp.array(dtype=wp.int32),
-        box: wp.array(dtype=wp.vec4i),
-        gbox: wp.array(dtype=wp.vec4i),
-        pt_off: wp.array(dtype=wp.int32),
-        n_cand: int,
-        ks: int,
-        stride: int,
+        seen: RenderedBoxes,
+        pts: PointLayout,
         relu: int,
         sur: Surround,
         obs_feat: wp.array2d(dtype=vecC),
@@ -327,23 +314,21 @@ def feature_kernels(C: int):
         out: wp.array(dtype=float),
     ):
         """score_points' values from features convolved elsewhere: candidate c's conv1 output as C
-        planes of its points (row by row in its grid box) from C pt_off[c] in feat; the same points on
-        and off the mask, the same cosine."""
+        planes of its points (row by row in its grid box) from C pts.pt_off[c] in feat; the same points
+        on and off the mask, the same cosine."""
         i = wp.tid()
-        rows, cols = obs_feat.shape[0], obs_feat.shape[1]
-        compared, value, c, gx, gy, u, v = point_to_compare(
-            mask, pix_off, box, gbox, pt_off, n_cand, ks, stride, rows, cols, i
-        )
+        compared, value, c, gx, gy, u, v = point_to_compare(seen, pts, obs_feat.shape[0], obs_feat.shape[1], i)
         if not compared:
             out[i] = value
             return
-        n = pt_off[c + 1] - pt_off[c]
-        at = C * pt_off[c] + (i - pt_off[c])
+        first = pts.pt_off[c]
+        n = pts.pt_off[c + 1] - first
+        at = C * first + (i - first)
         f = vecC()
         for ch in range(C):
             f[ch] = feat[at + ch * n]
         f = rectified(f, relu)
-        share = window_share(sur, mask, pix_off[c], box[c], u, v, ks)
+        share = window_share(sur, seen.mask, seen.pix_off[c], seen.box[c], u, v, pts.ks)
         out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy, share)
 
     return vecC, observed_features, score_points, score_features

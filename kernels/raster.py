@@ -12,6 +12,7 @@ colour each pixel from its face as kernel #1 does. Same layout as kernel #1: can
 
 import warp as wp
 
+from .features import PointLayout
 from .render import MeshLook, PixelRays, box_pixel, pixel_ray_m, sample_texture, surface_uv, vertex_color
 
 # Key of a pixel no triangle covers (above any hit's key).
@@ -199,28 +200,24 @@ def splat_points(
     indices: wp.array(dtype=wp.int32),
     uvz: wp.array2d(dtype=wp.vec3),
     rays: PixelRays,
-    box: wp.array(dtype=wp.vec4i),
-    gbox: wp.array(dtype=wp.vec4i),
-    pt_off: wp.array(dtype=wp.int32),
-    ks: int,
-    stride: int,
+    pts: PointLayout,
     c0: int,
     min_depth_m: float,
     cull_back: int,
     out_hit: wp.array(dtype=wp.uint8),
 ):
-    """Thread (j, f): mark the feature points of candidate c0 + j (grid box gbox, pixel box box,
+    """Thread (j, f): mark the feature points of candidate c0 + j (its grid box and pixel box in `pts`,
     kernel #2's layout) whose pixel ray hits face f. A point is marked exactly when splat_faces
     finds a hit at its pixel: the same faces, rays and test; any hit will do."""
     j, f = wp.tid()
     c = c0 + j
     i0, i1, i2, q0, q1, q2 = face_corners(indices, uvz, j, f)
-    b = box[c]
-    tested, window = face_window(q0, q1, q2, b, min_depth_m, cull_back)
+    tested, window = face_window(q0, q1, q2, pts.box[c], min_depth_m, cull_back)
     if tested == 0:
         return
-    g = gbox[c]
-    half = ks // 2
+    g = pts.gbox[c]
+    half = pts.ks // 2
+    stride = pts.stride
     # Feature points are the pixels (half + stride gx, half + stride gy) of grid box g.
     gx0 = wp.max(g[0], int(wp.ceil(float(window[0] - half) / float(stride))))
     gx1 = wp.min(g[0] + g[2] - 1, int(wp.floor(float(window[2] - half) / float(stride))))
@@ -235,7 +232,7 @@ def splat_points(
     o = rays.origin_m[c]
     for gy in range(gy0, gy1 + 1):
         v = half + stride * gy
-        row = pt_off[c] + (gy - g[1]) * g[2] - g[0]
+        row = pts.pt_off[c] + (gy - g[1]) * g[2] - g[0]
         for gx in range(gx0, gx1 + 1):
             if out_hit[row + gx] != wp.uint8(0):
                 continue  # already on the silhouette

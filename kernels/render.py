@@ -109,6 +109,18 @@ def pixel_ray_m(rays: PixelRays, c: int, u: int, v: int) -> wp.vec3:
     return rays.rot_c2m[c] * wp.vec3((float(u) - rays.cx) / rays.fx, (float(v) - rays.cy) / rays.fy, 1.0)
 
 
+@wp.struct
+class RenderedBoxes:
+    """Kernel #1's output as kernel #2 reads it: colour rgb (RGB in [0, 1]) and mask (1 on the mesh) per
+    flat pixel, candidate c owning pixels [pix_off[c], pix_off[c+1]) of its box box[c] = (x0, y0, w, h),
+    row by row (box_pixel)."""
+
+    rgb: wp.array(dtype=wp.vec3)
+    mask: wp.array(dtype=wp.uint8)
+    box: wp.array(dtype=wp.vec4i)
+    pix_off: wp.array(dtype=wp.int32)
+
+
 @wp.kernel(enable_backward=False)
 def render_boxes(
     mesh: wp.uint64,

@@ -15,7 +15,7 @@ import warp as wp
 
 from .camera import Camera
 from .kernels.bound import rarity_at_hits
-from .render import PointLayout, Renderer
+from .render import Renderer, point_layout
 from .score import top_alpha_mean_device
 
 # Scores are float32 cosines (which may exceed 1 by rounding) times rarity, averaged in float64:
@@ -39,14 +39,14 @@ def silhouette_points(
     and the flat offsets (B + 1,), device arrays in the layout of FeatureScorer.score_points.
     Poses are model-to-camera (R (B, 3, 3), t (B, 3) metres); boxes are pixels, gboxes feature cells.
     The silhouette is the renderer's own (Renderer.silhouette): the mask kernel #2 will read."""
-    layout = PointLayout.of(boxes, gboxes, kernel_size, stride, renderer.device)
+    layout = point_layout(boxes, gboxes, kernel_size, stride, renderer.device)
     hits = renderer.silhouette(camera, R_m2c, t_m2c_m, layout)
     with wp.ScopedDevice(renderer.device):
         out = wp.empty(layout.n_points, dtype=float)
         wp.launch(
             rarity_at_hits,
             dim=layout.n_points,
-            inputs=[hits, layout.gbox, layout.pt_off, layout.n, kernel_size, stride, ceiling],
+            inputs=[hits, layout, ceiling],
             outputs=[out],
         )
     return out, layout.pt_off

@@ -266,18 +266,7 @@ def add_arguments(p: argparse.ArgumentParser) -> None:
         default=None,
         help="entry of a multi-image scene_camera.json (default: from the image name)",
     )
-    p.add_argument(
-        "--table-extent",
-        type=float,
-        nargs=4,
-        default=None,
-        metavar=("X0", "X1", "Y0", "Y1"),
-        help="the table top is this rectangle of the table frame (metres): poses whose model origin lies "
-        "outside are never scored (default: the camera file's table_extent_mm polygon, else the whole plane)",
-    )
-    p.add_argument(
-        "--lift-mm", type=float, default=0.0, help="the surface the object stands on is this high above the table (mm)"
-    )
+    _add_table_arguments(p)
     p.add_argument(
         "--truth",
         default=None,
@@ -340,4 +329,20 @@ def _add_object_arguments(p: argparse.ArgumentParser) -> None:
         default=DEFAULT_PEAKS,
         help=f"several objects: each object's best distinct peaks (refined) the joint step chooses among "
         f"(default: {DEFAULT_PEAKS}; at least --refine-peaks)",
+    )
+
+
+def _add_table_arguments(p: argparse.ArgumentParser) -> None:
+    """Where the table top is and what the object stands on."""
+    p.add_argument(
+        "--table-extent",
+        type=float,
+        nargs=4,
+        default=None,
+        metavar=("X0", "X1", "Y0", "Y1"),
+        help="the table top is this rectangle of the table frame (metres): poses whose model origin lies "
+        "outside are never scored (default: the camera file's table_extent_mm polygon, else the whole plane)",
+    )
+    p.add_argument(
+        "--lift-mm", type=float, default=0.0, help="the surface the object stands on is this high above the table (mm)"
     )

@@ -104,13 +104,28 @@ def load_mesh(path: str | Path, units: str = "auto", untextured: bool = False) -
     untextured: search a mesh that has no material and no vertex colours at all in a uniform
     grey (never a mesh whose material or texture file is missing: that is an error).
     """
-    import trimesh  # see hull_points_m
-
     path = Path(path)
     if not path.is_file():
         raise PerchError(f"mesh file not found: {path}")
     if units not in ("auto", "mm", "m"):
         raise PerchError(f"mesh units must be auto, mm or m, got {units!r}")
+    loaded = _read_trimesh(path)
+    V = np.asarray(loaded.vertices, dtype=np.float64)
+    F = np.asarray(loaded.faces, dtype=np.int32)
+    if not np.all(np.isfinite(V)):
+        raise PerchError(f"mesh {path} has non-finite vertex coordinates")
+    scale, note = _unit_scale(path, V, units)
+    uv, texture, colors = _appearance(loaded.visual, path, len(V), untextured)
+    if texture is None and colors is None:
+        colors = np.full((len(V), 3), UNTEXTURED_GREY, np.float32)
+        note += ", untextured: uniform grey"
+    return ObjectMesh(V * scale, F, uv, texture, colors, str(path), note)
+
+
+def _read_trimesh(path: Path):
+    """The file as one trimesh.Trimesh with at least one face, unprocessed (an OBJ's materials checked first)."""
+    import trimesh  # see hull_points_m
+
     if path.suffix.lower() == ".obj":
         _obj_materials(path)
     try:
@@ -119,11 +134,12 @@ def load_mesh(path: str | Path, units: str = "auto", untextured: bool = False) -
         raise PerchError(f"cannot read mesh {path}: {e}") from None
     if not isinstance(loaded, trimesh.Trimesh) or len(loaded.faces) == 0:
         raise PerchError(f"mesh {path} has no faces")
-    V = np.asarray(loaded.vertices, dtype=np.float64)
-    F = np.asarray(loaded.faces, dtype=np.int32)
-    if not np.all(np.isfinite(V)):
-        raise PerchError(f"mesh {path} has non-finite vertex coordinates")
+    return loaded
 
+
+def _unit_scale(path: Path, V: np.ndarray, units: str) -> tuple[float, str]:
+    """Metres per unit of vertices V (units "auto", "mm" or "m") and the note saying how it was chosen;
+    refuses a degenerate mesh and one whose size in metres is not a tabletop object's (OBJECT_EXTENT_M)."""
     extents = V.max(0) - V.min(0)
     extent = float(extents.max())
     if units == "auto":
@@ -148,21 +164,26 @@ def load_mesh(path: str | Path, units: str = "auto", untextured: bool = False) -
             f"mesh {path} is {size} units across, read as {unit} ({'auto' if units == 'auto' else 'given'}): "
             f"{extent * scale:g} m, outside the {lo * 1000:g} mm .. {hi:g} m of a tabletop object; {fix}"
         )
+    return scale, note
 
+
+def _appearance(visual, path: Path, n_vertices: int, untextured: bool):
+    """(uv, texture, colors) of a trimesh visual, None where absent: a texture image with its UVs, a
+    material's plain diffuse colour or vertex colours as per vertex colours. Neither texture nor
+    colours is refused unless `untextured` and the mesh has no material at all."""
     uv = texture = colors = None
-    visual = loaded.visual
     if getattr(visual, "kind", None) == "texture" and getattr(visual, "uv", None) is not None:
         texture = _texture_image(visual, path)
         if texture is not None:
             uv = np.asarray(visual.uv, dtype=np.float32)[:, :2]
-            if len(uv) != len(V):
-                raise PerchError(f"mesh {path}: {len(uv)} UVs for {len(V)} vertices")
+            if len(uv) != n_vertices:
+                raise PerchError(f"mesh {path}: {len(uv)} UVs for {n_vertices} vertices")
         else:
             # A material with a plain diffuse colour but no image: use it as a uniform colour.
             mat = getattr(visual, "material", None)
             diffuse = getattr(mat, "diffuse", None) if mat is not None else None
             if diffuse is not None:
-                colors = np.tile(np.asarray(diffuse, dtype=np.float32)[:3] / 255.0, (len(V), 1))
+                colors = np.tile(np.asarray(diffuse, dtype=np.float32)[:3] / 255.0, (n_vertices, 1))
     elif getattr(visual, "kind", None) == "vertex":
         colors = np.asarray(visual.vertex_colors, dtype=np.float32)[:, :3] / 255.0
     if texture is None and colors is None:
@@ -172,6 +193,4 @@ def load_mesh(path: str | Path, units: str = "auto", untextured: bool = False) -
                 f"mesh {path} has no texture and no vertex colours: the search needs its appearance "
                 "(--untextured searches a mesh without any material in uniform grey)"
             )
-        colors = np.full((len(V), 3), UNTEXTURED_GREY, np.float32)
-        note += ", untextured: uniform grey"
-    return ObjectMesh(V * scale, F, uv, texture, colors, str(path), note)
+    return uv, texture, colors

@@ -27,7 +27,8 @@ from .errors import PerchError
 from .kernels import bound as bound_kernels
 from .kernels import boxes as box_kernels
 from .kernels import raster as raster_kernels
-from .kernels.render import MeshLook, PixelRays, render_boxes
+from .kernels.features import PointLayout
+from .kernels.render import MeshLook, PixelRays, RenderedBoxes, render_boxes
 from .mesh import ObjectMesh
 
 # Candidates closer than this to the camera plane cannot be rendered sensibly.
@@ -141,6 +142,12 @@ class RenderedBatch:
     pix_off: wp.array  # (B + 1,) int32 flat offsets
     n: int
 
+    def as_struct(self) -> RenderedBoxes:
+        """The batch as kernel #2 reads it (kernels/render.py: RenderedBoxes); the same device arrays."""
+        seen = RenderedBoxes()
+        seen.rgb, seen.mask, seen.box, seen.pix_off = self.rgb, self.mask, self.box, self.pix_off
+        return seen
+
 
 def flat_offsets(boxes: np.ndarray) -> np.ndarray:
     """Offsets (B + 1,) int32 of boxes (x0, y0, w, h) packed flat, w*h items each, row by row:
@@ -168,38 +175,24 @@ def pixel_rays(camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, device: s
     return rays
 
 
-@dataclass
-class PointLayout:
-    """Candidates' feature points on the device, in kernel #2's flat layout (kernels/features.py:
-    feature_point): candidate c owns points [pt_off[c], pt_off[c + 1]) of its grid box gbox[c], row by
-    row; point (gx, gy) is pixel (ks // 2 + stride * gx, ks // 2 + stride * gy) of the rendered box box[c]."""
-
-    box: wp.array  # (B,) vec4i pixel boxes (x0, y0, w, h)
-    gbox: wp.array  # (B,) vec4i feature-grid boxes (gx0, gy0, gw, gh)
-    pt_off: wp.array  # (B + 1,) int32 flat offsets
-    n_points: int
-    kernel_size: int
-    stride: int
-
-    @property
-    def n(self) -> int:
-        return len(self.box)
-
-    @staticmethod
-    def of(boxes: np.ndarray, gboxes: np.ndarray, kernel_size: int, stride: int, device: str) -> PointLayout:
-        """The layout of pixel boxes (B, 4) and their grid boxes (B, 4) (score.grid_boxes), uploaded."""
-        gboxes = np.asarray(gboxes, dtype=np.int32)
-        pt_off = flat_offsets(gboxes)
-        with wp.ScopedDevice(device):
-            box = wp.array(np.asarray(boxes, dtype=np.int32), dtype=wp.vec4i)
-            return PointLayout(
-                box,
-                wp.array(gboxes, dtype=wp.vec4i),
-                wp.array(pt_off, dtype=wp.int32),
-                int(pt_off[-1]),
-                kernel_size,
-                stride,
-            )
+def point_layout(
+    boxes: np.ndarray | wp.array, gboxes: np.ndarray, kernel_size: int, stride: int, device: str
+) -> PointLayout:
+    """Candidates' feature points as every kernel that walks them takes them (kernels/features.py:
+    PointLayout): pixel boxes (B, 4) (a vec4i device array is used as it is, e.g. a RenderedBatch's)
+    and their grid boxes (B, 4) (score.grid_boxes), built once per batch on the host and uploaded."""
+    gboxes = np.asarray(gboxes, dtype=np.int32)
+    pt_off = flat_offsets(gboxes)
+    pts = PointLayout()
+    with wp.ScopedDevice(device):
+        pts.box = boxes if isinstance(boxes, wp.array) else wp.array(np.asarray(boxes, np.int32), dtype=wp.vec4i)
+        pts.gbox = wp.array(gboxes, dtype=wp.vec4i)
+        pts.pt_off = wp.array(pt_off, dtype=wp.int32)
+    pts.n_cand = len(gboxes)
+    pts.n_points = int(pt_off[-1])
+    pts.ks = int(kernel_size)
+    pts.stride = int(stride)
+    return pts
 
 
 class DeviceMesh:
@@ -316,8 +309,7 @@ class BvhRenderer(Renderer):
             wp.launch(
                 bound_kernels.anyhit_points,
                 dim=layout.n_points,
-                inputs=[self.wp_mesh.id, rays, layout.box, layout.gbox, layout.pt_off, layout.n]
-                + [layout.kernel_size, layout.stride],
+                inputs=[self.wp_mesh.id, rays, layout],
                 outputs=[hits],
             )
         return hits
@@ -354,14 +346,13 @@ class RasterRenderer(Renderer):
         rays = self.pixel_rays(camera, R_m2c, t_m2c_m)
         with wp.ScopedDevice(self.device):
             hits = wp.zeros(layout.n_points, dtype=wp.uint8)
-            per_candidate = [layout.box, layout.gbox, layout.pt_off, layout.kernel_size, layout.stride]
-            self._per_face(raster_kernels.splat_points, layout.n, rays, per_candidate, hits)
+            self._per_face(raster_kernels.splat_points, layout.n_cand, rays, [layout], hits)
         return hits
 
     def _per_face(self, kernel, n_cand: int, rays: PixelRays, per_candidate: list, out: wp.array) -> None:
         """Launch a raster kernel over (candidate, face) for n_cand candidates, in chunks of at most
         VERTEX_SLOTS projected vertices: project_points, then `kernel` with the mesh, projections,
-        rays (pixel_rays), the arrays `per_candidate`, the chunk's first candidate and the culling
+        rays (pixel_rays), the arguments `per_candidate`, the chunk's first candidate and the culling
         flag; it writes `out`."""
         points, indices = self.dmesh.points, self.dmesh.indices
         n_points = len(points)

@@ -13,7 +13,8 @@ from .errors import PerchError
 from .features import FeatureWeights
 from .kernels.features import NOT_ON_MASK, PointWeights, Surround, composite_crops, feature_kernels
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
-from .render import RenderedBatch, flat_offsets
+from .kernels.render import RenderedBoxes
+from .render import RenderedBatch, flat_offsets, point_layout
 from .score_terms import SURROUNDS
 
 
@@ -168,61 +169,41 @@ class FeatureScorer:
         point of each candidate's box and the flat
         offsets (B + 1,) int32 of each candidate's points, both device arrays (they stay there
         for `top_alpha_mean_device`); off-mask points hold NOT_ON_MASK."""
-        gboxes = np.asarray(gboxes, dtype=np.int32)
-        pt_off = flat_offsets(gboxes)
-        n_pts = int(pt_off[-1])
+        pts = point_layout(batch.box, gboxes, self.ks, self.stride, self.device)
+        seen = batch.as_struct()
+        compare = [self.surround, obs_feat, obs_norm, pw]  # what every point is compared with, and how
         with wp.ScopedDevice(self.device):
-            out = wp.empty(n_pts, dtype=float)
-            offsets = wp.array(pt_off, dtype=wp.int32)
+            out = wp.empty(pts.n_points, dtype=float)
             if self.conv == "torch":
                 bufs = self._take_buffers()
                 try:
-                    feat = self._torch_features(image, batch, gboxes, pt_off, bufs)
+                    feat = self._torch_features(image, seen, gboxes, bufs)
                     wp.launch(
                         self.k_score_features,
-                        dim=n_pts,
-                        inputs=[feat, batch.mask, batch.pix_off, batch.box, wp.array(gboxes, dtype=wp.vec4i)]
-                        + [offsets, batch.n, self.ks, self.stride, self.relu, self.surround, obs_feat, obs_norm, pw],
+                        dim=pts.n_points,
+                        inputs=[feat, seen, pts, self.relu, *compare],
                         outputs=[out],
                     )
                 finally:
                     self._buffers.put(bufs)  # the same stream reads it before a later batch writes it
-                return out, offsets
-            wp.launch(
-                self.k_score,
-                dim=n_pts,
-                inputs=[
-                    image,
-                    batch.rgb,
-                    batch.mask,
-                    batch.pix_off,
-                    batch.box,
-                    wp.array(gboxes, dtype=wp.vec4i),
-                    offsets,
-                    batch.n,
-                    self.Wt,
-                    self.bias,
-                    self.ks,
-                    self.stride,
-                    self.relu,
-                    self.surround,
-                    obs_feat,
-                    obs_norm,
-                    pw,
-                ],
-                outputs=[out],
-            )
-        return out, offsets
+            else:
+                wp.launch(
+                    self.k_score,
+                    dim=pts.n_points,
+                    inputs=[image, seen, pts, self.Wt, self.bias, self.relu, *compare],
+                    outputs=[out],
+                )
+        return out, pts.pt_off
 
-    def _torch_features(
-        self, image: wp.array, batch: RenderedBatch, gboxes: np.ndarray, pt_off: np.ndarray, bufs: dict
-    ) -> wp.array:
-        """conv1 at every feature point of the batch, for `score_features`: candidate c's C planes of
-        its points from C pt_off[c], a flat device array. Each candidate's windows are composited into
+    def _torch_features(self, image: wp.array, seen: RenderedBoxes, gboxes: np.ndarray, bufs: dict) -> wp.array:
+        """conv1 at every feature point of the batch (seen: kernel #1's output, gboxes: the candidates'
+        grid boxes), for `score_features`: candidate c's C planes of its points from C pt_off[c]
+        (flat_offsets(gboxes)), a flat device array. Each candidate's windows are composited into
         one crop (composite_crops) that torch's conv2d convolves, one candidate per call, so that a
         candidate's features never depend on the batch it is in."""
         import torch
 
+        pt_off = flat_offsets(np.asarray(gboxes, dtype=np.int32))
         crops = crop_boxes(gboxes, self.ks, self.stride)
         crop_off = flat_offsets(crops)
         C = int(self._t_weight.shape[0])
@@ -231,8 +212,7 @@ class FeatureScorer:
         wp.launch(
             composite_crops,
             dim=(len(crops), int(crops[:, 3].max(initial=0))),
-            inputs=[image, batch.rgb, batch.mask, batch.pix_off, batch.box]
-            + [wp.array(crops, dtype=wp.vec4i), wp.array(crop_off, dtype=wp.int32), self.surround],
+            inputs=[image, seen, wp.array(crops, dtype=wp.vec4i), wp.array(crop_off, dtype=wp.int32), self.surround],
             outputs=[flat],
         )
         f_t, flat_t = wp.to_torch(feat), wp.to_torch(flat)

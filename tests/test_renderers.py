@@ -14,10 +14,10 @@ from perch_warp.render import (
     RENDERER_CLASSES,
     BvhRenderer,
     DeviceMesh,
-    PointLayout,
     RasterRenderer,
     Renderer,
     make_renderer,
+    point_layout,
     project_boxes,
 )
 from perch_warp.scene import label_texture, look_at_table, textured_box
@@ -81,7 +81,7 @@ def test_silhouette_is_the_render_mask_at_the_feature_points(dmesh, name, ks, st
     r = make_renderer(name, dmesh)
     R, t, boxes = _poses(dmesh, seed=2)
     gboxes = grid_boxes(boxes, ks, stride)
-    hits = r.silhouette(CAM, R, t, PointLayout.of(boxes, gboxes, ks, stride, DEVICE)).numpy()
+    hits = r.silhouette(CAM, R, t, point_layout(boxes, gboxes, ks, stride, DEVICE)).numpy()
     want = _mask_at_points(r.render(CAM, R, t, boxes).mask.numpy(), boxes, gboxes, ks, stride)
     assert hits.sum() > 100 and (hits == 0).sum() > 100
     assert np.array_equal(hits, want)

@@ -40,14 +40,7 @@ from perch_warp.score import grid_boxes
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    add_frame_arguments(ap)
-    add_pose_sample_arguments(ap)
-    ap.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
-    ap.add_argument("--repeat", type=int, default=3, help="timed calls per form, best kept (default 3)")
-    ap.add_argument("--weights", default="caffe")
-    ap.add_argument("--out", type=Path, default=None, help="write the figures here as JSON")
-    args = ap.parse_args(argv)
+    args = _parser().parse_args(argv)
     dataset = args.dataset or default_dataset()
     if dataset is None:
         print("conv_compare: shared/data/ycbv not found (set PERCH_WARP_SHARED)", file=sys.stderr)
@@ -67,6 +60,29 @@ def main(argv: list[str] | None = None) -> int:
     gboxes = grid_boxes(boxes, weights.kernel_size, e.config.stride)
     renderer = "raster" if wp.get_device(args.device).is_cpu else "bvh"
     batch = e.renderer_for(renderer).render(w.camera, R, t, boxes)
+    times, values = _time_forms(engines, photo, batch, gboxes, args)
+    report = _report(times, values, weights, args.device, w.label, renderer, len(boxes))
+    _print_report(report)
+    if args.out:
+        args.out.parent.mkdir(parents=True, exist_ok=True)
+        args.out.write_text(json.dumps(report, indent=1) + "\n")
+    return 0 if report["same_points_on_mask"] else 1
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    add_frame_arguments(ap)
+    add_pose_sample_arguments(ap)
+    ap.add_argument("--device", default="cpu", help="Warp device (default: cpu)")
+    ap.add_argument("--repeat", type=int, default=3, help="timed calls per form, best kept (default 3)")
+    ap.add_argument("--weights", default="caffe")
+    ap.add_argument("--out", type=Path, default=None, help="write the figures here as JSON")
+    return ap
+
+
+def _time_forms(engines: dict, photo, batch, gboxes: np.ndarray, args) -> tuple[dict, dict]:
+    """Per conv form (its engine's scorer): the best of args.repeat timed score_points calls on the batch
+    after a warm-up (kernel builds, torch's first call), and the values that warm-up scored."""
     times, values = {}, {}
     for conv, eng in engines.items():
         scorer = eng.scorer
@@ -84,6 +100,12 @@ def main(argv: list[str] | None = None) -> int:
                 call()
                 best = min(best, time.perf_counter() - t0)
         times[conv] = best
+    return times, values
+
+
+def _report(times: dict, values: dict, weights, device: str, label: str, renderer: str, n_cand: int) -> dict:
+    """The figures: each form's time, per on-mask point and as conv1 arithmetic throughput, and whether
+    the two forms score the same points (and how far apart their values are)."""
     on = values["warp"] > NOT_ON_MASK / 2
     same_mask = bool(np.array_equal(on, values["torch"] > NOT_ON_MASK / 2))
     diff = float(np.abs(values["warp"][on] - values["torch"][on]).max()) if on.any() else 0.0
@@ -92,13 +114,13 @@ def main(argv: list[str] | None = None) -> int:
     # torch's conv2d convolves every feature point of a crop; the Warp kernel only those on the mask.
     per_point = 2.0 * weights.channels * 3 * weights.kernel_size**2 / 1e9
     gflop = {"warp": per_point * n_on, "torch": per_point * len(on)}
-    report = {
-        "device": args.device,
-        "device_name": device_name(args.device),
+    return {
+        "device": device,
+        "device_name": device_name(device),
         "commit": git_commit(),
-        "workload": w.label,
+        "workload": label,
         "renderer": renderer,
-        "candidates": len(boxes),
+        "candidates": n_cand,
         "feature_points": len(on),
         "on_mask_points": n_on,
         "seconds": times,
@@ -109,20 +131,20 @@ def main(argv: list[str] | None = None) -> int:
         "same_points_on_mask": same_mask,
         "max_abs_difference": diff,
     }
+
+
+def _print_report(report: dict) -> None:
+    times, gflop = report["seconds"], report["conv1_gflop"]
     print(f"device   {report['device_name']}\ncommit   {report['commit']}")
-    print(f"batch    {len(boxes)} candidates of {w.label} ({renderer} render)")
-    print(f"points   {len(on):,} feature points, {n_on:,} on the mask")
+    print(f"batch    {report['candidates']} candidates of {report['workload']} ({report['renderer']} render)")
+    print(f"points   {report['feature_points']:,} feature points, {report['on_mask_points']:,} on the mask")
     for conv in ("warp", "torch"):
         print(
             f"{conv:<8} {times[conv]:.4f} s  {report['us_per_on_mask_point'][conv]:.3f} us per on-mask point, "
             f"{report['gflop_per_s'][conv]:.1f} GFLOP/s of conv1 arithmetic ({gflop[conv]:.2f} GFLOP)"
         )
-    print(f"torch / warp {report['torch_over_warp']:.2f}; same points on the mask: {same_mask}")
-    print(f"largest |difference| of the values: {diff:.2e}")
-    if args.out:
-        args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(json.dumps(report, indent=1) + "\n")
-    return 0 if same_mask else 1
+    print(f"torch / warp {report['torch_over_warp']:.2f}; same points on the mask: {report['same_points_on_mask']}")
+    print(f"largest |difference| of the values: {report['max_abs_difference']:.2e}")
 
 
 if __name__ == "__main__":

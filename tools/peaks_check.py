@@ -10,7 +10,7 @@ grid search (visible table clipped to 1 m, 1 cm / 5 deg, pruned, exact) ranking 
 their best score over yaw, and stores its best 256 locations (each with its best grid yaw) and the
 ground truth's table pose, resuming where a previous run stopped. `refine` rebuilds each photo's
 scoring service and evaluates each strategy (K peaks at least S grid steps apart, M yaws per peak's
-place, perch_warp.search.refine.refine_peaks' own functions), refining each grid pose once (cached
+place, perch_warp.search.refine.refine_place itself), refining each grid pose once (cached
 across strategies), and reports per strategy ADD-S < 2 cm and ADD-S AUC, paired with the first
 strategy (bootstrap interval of the difference over targets). The ground truth is used for the
 errors only. Since a strategy with (K, M, S) is what `--refine-peaks K --refine-yaws M` computes,
@@ -36,7 +36,7 @@ from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
 from perch_warp.peaks import distinct_peaks, top_location_candidates
 from perch_warp.search import pruned
-from perch_warp.search.refine import place_yaws, refine
+from perch_warp.search.refine import refine, refine_place
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import decompose_on_table, model_to_camera
 
@@ -104,21 +104,23 @@ def strategies(args: argparse.Namespace) -> list[tuple[int, int, int]]:
 
 
 def refine_target(service, space, pool: list, plan: list[tuple[int, int, int]], grid_search: str = "pruned"):
-    """Per strategy (K, M, S): the answer (x_m, y_m, yaw_rad, score), each grid pose refined once."""
+    """Per strategy (K, M, S): the answer (x_m, y_m, yaw_rad, score), search.refine.refine_place at each of
+    the K peaks with M yaws, the best of them; each grid pose refined once across strategies."""
     cache: dict[tuple, tuple] = {}
+
+    def refine_once(svc, space, top: list, grid_search: str):
+        key = tuple(round(v, 9) for v in top[0][:3])
+        if key not in cache:
+            cache[key] = refine(svc, space, top, grid_search)
+        return cache[key]
+
     answers = {}
     for k, m, s in plan:
         cfg = dataclasses.replace(service.config, refine_yaws=m)
         svc = dataclasses.replace(service, config=cfg)
-        best = None
-        for i in distinct_peaks(pool, k, s * space.xy_step_m):
-            for pose in place_yaws(svc, space, tuple(pool[i]), m):
-                key = tuple(round(v, 9) for v in pose[:3])
-                if key not in cache:
-                    cache[key] = refine(svc, space, [pose], grid_search)[0][0]
-                if best is None or cache[key][3] > best[3]:
-                    best = cache[key]
-        answers[(k, m, s)] = best
+        peaks = distinct_peaks(pool, k, s * space.xy_step_m)
+        places = [refine_place(svc, space, tuple(pool[i]), grid_search, refine_once)[0] for i in peaks]
+        answers[(k, m, s)] = max(places, key=lambda c: c[3])  # the first of equal bests, as refine_place keeps
     return answers, len(cache)
 
 

@@ -99,38 +99,9 @@ def format_table(times: dict[str, list[float]], wall_ms: float) -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_frame_arguments(ap)
-    ap.add_argument("--clip", type=float, default=0.1, help="visible table clipped to this square, m (default 0.1)")
-    ap.add_argument("--xy-step", type=float, default=0.02, help="m (default 0.02)")
-    ap.add_argument("--yaw-step", type=float, default=0.5, help="rad (default 0.5)")
-    ap.add_argument("--image-scale", type=float, default=1.0)
-    ap.add_argument("--search", default="exhaustive", choices=["exhaustive", "pruned", "coarse-to-fine"])
-    ap.add_argument("--device", default=None, help="cpu | cuda:0 (default: a GPU if Warp sees one)")
-    ap.add_argument("--weights", default="caffe")
-    ap.add_argument(
-        "--method",
-        default="auto",
-        choices=["auto", "sync", "events"],
-        help="sync: host timer around each launch; events: CUDA activity timing (default: events on CUDA, else sync)",
-    )
-    ap.add_argument("--out", type=Path, default=None, help="also write the figures as JSON here")
-    args = ap.parse_args(argv)
+    args = _parser().parse_args(argv)
     try:
-        dataset = args.dataset or default_dataset()
-        if dataset is None:
-            raise PerchError("no --dataset given and shared/data/ycbv not found (set PERCH_WARP_SHARED)")
-        w = load_workload(dataset, args.scene, args.image, args.obj, args.clip, args.xy_step, args.yaw_step)
-        device = args.device or default_device()
-        engine = Engine(
-            w.mesh,
-            load_feature_weights(args.weights),
-            device,
-            EngineConfig(search=args.search, image_scale=args.image_scale),
-        )
-        method = args.method if args.method != "auto" else ("events" if device.startswith("cuda") else "sync")
-        if method == "events" and not device.startswith("cuda"):
-            raise PerchError("--method events needs a CUDA device (CUDA activity timing)")
+        w, device, engine, method = _setup(args)
     except PerchError as e:
         print(f"profile_kernels: error: {e}", file=sys.stderr)
         return 1
@@ -154,32 +125,70 @@ def main(argv: list[str] | None = None) -> int:
     print(text)
     if args.out:
         args.out.parent.mkdir(parents=True, exist_ok=True)
-        args.out.write_text(
-            json.dumps(
-                {
-                    "device": device,
-                    "device_name": device_name(device),
-                    "commit": git_commit(),
-                    "warp_version": wp.__version__,
-                    "workload": w.label,
-                    "space": w.space.describe(),
-                    "settings": {
-                        "clip_m": args.clip,
-                        "xy_step_m": args.xy_step,
-                        "yaw_step_rad": args.yaw_step,
-                        "yaw_step_deg": math.degrees(args.yaw_step),
-                        "image_scale": args.image_scale,
-                        "search": args.search,
-                    },
-                    "method": method,
-                    "search_wall_ms": wall_ms,
-                    "kernels_ms": times,
-                },
-                indent=1,
-            )
-            + "\n"
-        )
+        args.out.write_text(json.dumps(_figures(args, device, w, method, times, wall_ms), indent=1) + "\n")
     return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_frame_arguments(ap)
+    ap.add_argument("--clip", type=float, default=0.1, help="visible table clipped to this square, m (default 0.1)")
+    ap.add_argument("--xy-step", type=float, default=0.02, help="m (default 0.02)")
+    ap.add_argument("--yaw-step", type=float, default=0.5, help="rad (default 0.5)")
+    ap.add_argument("--image-scale", type=float, default=1.0)
+    ap.add_argument("--search", default="exhaustive", choices=["exhaustive", "pruned", "coarse-to-fine"])
+    ap.add_argument("--device", default=None, help="cpu | cuda:0 (default: a GPU if Warp sees one)")
+    ap.add_argument("--weights", default="caffe")
+    ap.add_argument(
+        "--method",
+        default="auto",
+        choices=["auto", "sync", "events"],
+        help="sync: host timer around each launch; events: CUDA activity timing (default: events on CUDA, else sync)",
+    )
+    ap.add_argument("--out", type=Path, default=None, help="also write the figures as JSON here")
+    return ap
+
+
+def _setup(args: argparse.Namespace):
+    """(workload, device, engine, timing method) of the options; PerchError when one cannot be had."""
+    dataset = args.dataset or default_dataset()
+    if dataset is None:
+        raise PerchError("no --dataset given and shared/data/ycbv not found (set PERCH_WARP_SHARED)")
+    w = load_workload(dataset, args.scene, args.image, args.obj, args.clip, args.xy_step, args.yaw_step)
+    device = args.device or default_device()
+    engine = Engine(
+        w.mesh,
+        load_feature_weights(args.weights),
+        device,
+        EngineConfig(search=args.search, image_scale=args.image_scale),
+    )
+    method = args.method if args.method != "auto" else ("events" if device.startswith("cuda") else "sync")
+    if method == "events" and not device.startswith("cuda"):
+        raise PerchError("--method events needs a CUDA device (CUDA activity timing)")
+    return w, device, engine, method
+
+
+def _figures(args: argparse.Namespace, device: str, w, method: str, times: dict, wall_ms: float) -> dict:
+    """What --out writes: the device, commit, workload and settings, and the profile."""
+    return {
+        "device": device,
+        "device_name": device_name(device),
+        "commit": git_commit(),
+        "warp_version": wp.__version__,
+        "workload": w.label,
+        "space": w.space.describe(),
+        "settings": {
+            "clip_m": args.clip,
+            "xy_step_m": args.xy_step,
+            "yaw_step_rad": args.yaw_step,
+            "yaw_step_deg": math.degrees(args.yaw_step),
+            "image_scale": args.image_scale,
+            "search": args.search,
+        },
+        "method": method,
+        "search_wall_ms": wall_ms,
+        "kernels_ms": times,
+    }
 
 
 if __name__ == "__main__":

@@ -39,15 +39,8 @@ def _yaw_diff_deg(a_rad: float, b_rad: float) -> float:
 
 
 def check(eval_out: Path, cells: int, device: str, limit: int | None = None, log=print) -> dict:
-    cfg_path, jl_path = eval_out / "eval_config.json", eval_out / "targets.jsonl"
-    for p in (cfg_path, jl_path):
-        if not p.is_file():
-            raise PerchError(f"{p} not found: give a `perch_warp eval` output folder")
-    cfg = json.loads(cfg_path.read_text())
+    cfg, targets, jl_path = _read_eval(eval_out, limit)
     opt = cfg["options"]
-    if not opt.get("refine", False):
-        raise PerchError(f"{eval_out} was made without refinement (its options have no refine: true)")
-    targets = [json.loads(line) for line in jl_path.read_text().splitlines() if line.strip()][:limit]
     config = EngineConfig(
         stride=opt["stride"],
         alpha=opt["alpha"],
@@ -65,45 +58,20 @@ def check(eval_out: Path, cells: int, device: str, limit: int | None = None, log
     engines: dict[int, Engine] = {}
     rows = []
     for n, t in enumerate(targets, 1):
-        ref = t["details"].get("refine")
-        if ref is None:
+        if t["details"].get("refine") is None:
             raise PerchError(f"{jl_path}: scene {t['scene_id']} image {t['im_id']} has no refinement details")
         w = load_workload(
             cfg["dataset"], t["scene_id"], t["im_id"], t["obj_id"], opt["clip"], grid_xy, grid_yaw, cfg["split"]
         )
         if t["obj_id"] not in engines:
             engines[t["obj_id"]] = Engine(w.mesh, weights, device, config)
-        x0, y0, yaw0 = ref["from"]["x_m"], ref["from"]["y_m"], math.radians(ref["from"]["yaw_deg"])
-        (rx0, rx1), (ry0, ry1) = t["details"]["region_m"]
-        grid = SearchSpace((rx0, rx1), (ry0, ry1), grid_xy, FULL_CIRCLE, grid_yaw)
-        space = cell_space(grid, x0, y0, yaw0, opt["refine_xy"], math.radians(opt["refine_yaw"]), cells)
-        step_xy_m, step_yaw_deg = space.xy_step_m, math.degrees(space.yaw_step_rad)
-        t0 = time.perf_counter()
-        best = engines[t["obj_id"]].estimate(w.image, w.camera, w.table, w.resting, space).best
-        refined = t["details"]["top_k"][0]
-        dxy = math.hypot(refined["x_m"] - best.x_m, refined["y_m"] - best.y_m)
-        dyaw = _yaw_diff_deg(refined["yaw_rad"], best.yaw_rad)
-        row = {
-            "scene_id": t["scene_id"],
-            "im_id": t["im_id"],
-            "obj_id": t["obj_id"],
-            "candidates": len(space),
-            "step_xy_m": step_xy_m,
-            "step_yaw_deg": step_yaw_deg,
-            "refined": refined,
-            "refine_evaluated": ref["evaluated"],
-            "window_best": {"x_m": best.x_m, "y_m": best.y_m, "yaw_rad": best.yaw_rad, "score": best.score},
-            "as_good": refined["score"] >= best.score - SCORE_TOL,
-            "same_pose": dxy <= step_xy_m * (1 + 1e-6) and dyaw <= step_yaw_deg * (1 + 1e-6),
-            "dxy_m": dxy,
-            "dyaw_deg": dyaw,
-            "seconds": time.perf_counter() - t0,
-        }
+        row = _check_target(engines[t["obj_id"]], w, t, opt, cells)
         rows.append(row)
         log(
             f"[{n}/{len(targets)}] scene {t['scene_id']} image {t['im_id']} obj {t['obj_id']}: refined "
-            f"{refined['score']:.5f}, window best {best.score:.5f} over {len(space)} poses "
-            f"({dxy * 1000:.1f} mm, {dyaw:.1f} deg apart), {row['seconds']:.1f} s"
+            f"{row['refined']['score']:.5f}, window best {row['window_best']['score']:.5f} over "
+            f"{row['candidates']} poses ({row['dxy_m'] * 1000:.1f} mm, {row['dyaw_deg']:.1f} deg apart), "
+            f"{row['seconds']:.1f} s"
         )
     n = len(rows)
     return {
@@ -116,6 +84,53 @@ def check(eval_out: Path, cells: int, device: str, limit: int | None = None, log
         "refine_evaluated_mean": float(np.mean([r["refine_evaluated"] for r in rows])) if rows else None,
         "cell_candidates_mean": float(np.mean([r["candidates"] for r in rows])) if rows else None,
         "rows": rows,
+    }
+
+
+def _read_eval(eval_out: Path, limit: int | None) -> tuple[dict, list[dict], Path]:
+    """A `perch_warp eval` folder made with refinement: its eval_config.json, its first `limit` journalled
+    targets and the journal's path."""
+    cfg_path, jl_path = eval_out / "eval_config.json", eval_out / "targets.jsonl"
+    for p in (cfg_path, jl_path):
+        if not p.is_file():
+            raise PerchError(f"{p} not found: give a `perch_warp eval` output folder")
+    cfg = json.loads(cfg_path.read_text())
+    if not cfg["options"].get("refine", False):
+        raise PerchError(f"{eval_out} was made without refinement (its options have no refine: true)")
+    targets = [json.loads(line) for line in jl_path.read_text().splitlines() if line.strip()][:limit]
+    return cfg, targets, jl_path
+
+
+def _check_target(engine: Engine, w, t: dict, opt: dict, cells: int) -> dict:
+    """One journalled target: the best of the window of `cells` grid steps around the pose its refinement
+    started from (searched whole, pruned), against the refined pose the run reported."""
+    ref = t["details"]["refine"]
+    grid_xy, grid_yaw = opt["xy_step"], math.radians(opt["yaw_step"])
+    x0, y0, yaw0 = ref["from"]["x_m"], ref["from"]["y_m"], math.radians(ref["from"]["yaw_deg"])
+    (rx0, rx1), (ry0, ry1) = t["details"]["region_m"]
+    grid = SearchSpace((rx0, rx1), (ry0, ry1), grid_xy, FULL_CIRCLE, grid_yaw)
+    space = cell_space(grid, x0, y0, yaw0, opt["refine_xy"], math.radians(opt["refine_yaw"]), cells)
+    step_xy_m, step_yaw_deg = space.xy_step_m, math.degrees(space.yaw_step_rad)
+    t0 = time.perf_counter()
+    best = engine.estimate(w.image, w.camera, w.table, w.resting, space).best
+    refined = t["details"]["top_k"][0]
+    dxy = math.hypot(refined["x_m"] - best.x_m, refined["y_m"] - best.y_m)
+    dyaw = _yaw_diff_deg(refined["yaw_rad"], best.yaw_rad)
+    return {
+        "scene_id": t["scene_id"],
+        "im_id": t["im_id"],
+        "obj_id": t["obj_id"],
+        "candidates": len(space),
+        "step_xy_m": step_xy_m,
+        "step_yaw_deg": step_yaw_deg,
+        "refined": refined,
+        "refine_evaluated": ref["evaluated"],
+        "window_best": {"x_m": best.x_m, "y_m": best.y_m, "yaw_rad": best.yaw_rad, "score": best.score},
+        "as_good": refined["score"] >= best.score - SCORE_TOL,
+        "same_pose": dxy <= step_xy_m * (1 + 1e-6) and dyaw <= step_yaw_deg * (1 + 1e-6),
+        "dxy_m": dxy,
+        "dyaw_deg": dyaw,
+        "seconds": time.perf_counter() - t0,
     }
 
 

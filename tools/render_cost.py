@@ -113,6 +113,49 @@ def subdivided(mesh: ObjectMesh, times: int) -> ObjectMesh:
 
 
 def main(argv: list[str] | None = None) -> int:
+    args = _parser().parse_args(argv)
+    if not (0 < args.image_scale <= 1) or args.subdivide < 0:
+        print("render_cost: --image-scale must be in (0, 1] and --subdivide >= 0", file=sys.stderr)
+        return 1
+    dataset = args.dataset or default_dataset()
+    if dataset is None or caffe_weights_path() is None:
+        print("render_cost: shared/data/ycbv not found (set PERCH_WARP_SHARED)", file=sys.stderr)
+        return 1
+    wp.config.log_level = wp.LOG_WARNING
+    wp.init()
+    w = load_workload(dataset, args.scene, args.image, args.obj, 1.0, 0.01, 0.1)
+    mesh = subdivided(w.mesh, args.subdivide)
+    cam = search_camera(w.camera, args.image_scale)
+    hull_m = mesh.hull_points_m()
+    R, t, boxes = sample_grid_poses(w, args.poses, args.seed, lambda R, t: project_boxes(cam, hull_m, R, t))
+    dmesh = DeviceMesh(mesh, args.device)
+    seconds, masks, same_colour = _time_variants(dmesh, cam, R, t, boxes, args)
+    mask = masks.pop("render")
+    agree = {k: float((m == mask).mean()) for k, m in masks.items()}
+    report = {
+        "device": args.device,
+        "commit": git_commit(),
+        "command": " ".join(["python", "tools/render_cost.py", *sys.argv[1:]]),
+        "mesh_faces": int(len(mesh.faces)),
+        "subdivide": args.subdivide,
+        "image_scale": args.image_scale,
+        "poses": int(len(boxes)),
+        "rays": len(mask),
+        "hit_fraction": float((mask > 0).mean()),
+        "seconds": seconds,
+        "mask_agreement_with_render": agree,
+        "raster_back_faces_skipped": RasterRenderer(dmesh).cull_back_faces,
+        "raster_same_colour_fraction": same_colour,
+        "window_pixel_fraction": window_fraction(mask, boxes, flat_offsets(boxes)),
+    }
+    _print_report(report, cam)
+    if args.out:
+        args.out.write_text(json.dumps(report, indent=1) + "\n")
+    ok = all(v == 1.0 for v in agree.values()) and same_colour >= 0.9999
+    return 0 if ok else 1
+
+
+def _parser() -> argparse.ArgumentParser:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     add_frame_arguments(ap)
     add_pose_sample_arguments(ap)
@@ -129,22 +172,13 @@ def main(argv: list[str] | None = None) -> int:
         "forms of kernel #1 scale with the face count",
     )
     ap.add_argument("--out", type=Path, default=None, help="write the figures here as JSON")
-    args = ap.parse_args(argv)
-    if not (0 < args.image_scale <= 1) or args.subdivide < 0:
-        print("render_cost: --image-scale must be in (0, 1] and --subdivide >= 0", file=sys.stderr)
-        return 1
-    dataset = args.dataset or default_dataset()
-    if dataset is None or caffe_weights_path() is None:
-        print("render_cost: shared/data/ycbv not found (set PERCH_WARP_SHARED)", file=sys.stderr)
-        return 1
-    wp.config.log_level = wp.LOG_WARNING
-    wp.init()
-    w = load_workload(dataset, args.scene, args.image, args.obj, 1.0, 0.01, 0.1)
-    mesh = subdivided(w.mesh, args.subdivide)
-    cam = search_camera(w.camera, args.image_scale)
-    hull_m = mesh.hull_points_m()
-    R, t, boxes = sample_grid_poses(w, args.poses, args.seed, lambda R, t: project_boxes(cam, hull_m, R, t))
-    dmesh = DeviceMesh(mesh, args.device)
+    return ap
+
+
+def _time_variants(dmesh: DeviceMesh, cam, R: np.ndarray, t: np.ndarray, boxes: np.ndarray, args):
+    """Seconds of each variant of kernel #1 over the boxes (best of args.repeat after a warm-up), each
+    variant's mask per box pixel (0/1; "render": the BVH render's, the reference) and the share of the
+    render's hit pixels the raster form colours the same."""
     renderer = BvhRenderer(dmesh)
     pix_off = flat_offsets(boxes)
     n = int(pix_off[-1])
@@ -186,43 +220,31 @@ def main(argv: list[str] | None = None) -> int:
         raster = RasterRenderer(dmesh)
         out["raster"] = timed(lambda: out.__setitem__("batch", raster.render(cam, R, t, boxes)))
         raster_batch = out.pop("batch")
-    agree = {
-        "closest_hit_only": float(((th > 0) == (mask > 0)).mean()),
-        "closest_hit_oracle_max_t": float(((t_hit2.numpy() > 0) == (mask > 0)).mean()),
-        "any_hit": float((m_any.numpy() == mask).mean()),
-        "raster": float((raster_batch.mask.numpy() == mask).mean()),
+    masks = {
+        "render": mask,
+        "closest_hit_only": (th > 0).astype(np.uint8),
+        "closest_hit_oracle_max_t": (t_hit2.numpy() > 0).astype(np.uint8),
+        "any_hit": m_any.numpy(),
+        "raster": raster_batch.mask.numpy(),
     }
     hit = mask > 0
-    rgb_same = float((raster_batch.rgb.numpy()[hit] == rgb[hit]).all(1).mean())
-    report = {
-        "device": args.device,
-        "commit": git_commit(),
-        "command": " ".join(["python", "tools/render_cost.py", *sys.argv[1:]]),
-        "mesh_faces": int(len(mesh.faces)),
-        "subdivide": args.subdivide,
-        "image_scale": args.image_scale,
-        "poses": int(len(boxes)),
-        "rays": n,
-        "hit_fraction": float((mask > 0).mean()),
-        "seconds": {k: out[k] for k in ("render", "closest_hit_only", "any_hit", "closest_hit_oracle_max_t", "raster")},
-        "mask_agreement_with_render": agree,
-        "raster_back_faces_skipped": raster.cull_back_faces,
-        "raster_same_colour_fraction": rgb_same,
-        "window_pixel_fraction": window_fraction(mask, boxes, pix_off),
-    }
+    same_colour = float((raster_batch.rgb.numpy()[hit] == rgb[hit]).all(1).mean())
+    seconds = {k: out[k] for k in ("render", "closest_hit_only", "any_hit", "closest_hit_oracle_max_t", "raster")}
+    return seconds, masks, same_colour
+
+
+def _print_report(report: dict, cam) -> None:
+    n = report["rays"]
     print(
         f"{report['poses']} poses, {n:,} rays ({100 * report['hit_fraction']:.1f} % hit), "
-        f"mesh {report['mesh_faces']} faces, image {cam.width}x{cam.height}, {args.device}, commit {report['commit']}"
+        f"mesh {report['mesh_faces']} faces, image {cam.width}x{cam.height}, {report['device']}, "
+        f"commit {report['commit']}"
     )
     for k, s in report["seconds"].items():
         print(f"  {k:<26}{s:8.3f} s  {n / s / 1e6:6.2f} M rays/s  ({s / report['seconds']['render']:.2f}x render)")
-    print(f"  mask agreement with render: {agree}")
-    print(f"  raster: same colour as render on {100 * rgb_same:.4f} % of hit pixels")
+    print(f"  mask agreement with render: {report['mask_agreement_with_render']}")
+    print(f"  raster: same colour as render on {100 * report['raster_same_colour_fraction']:.4f} % of hit pixels")
     print(f"  box pixels read by on-mask feature windows: {100 * report['window_pixel_fraction']:.1f} %")
-    if args.out:
-        args.out.write_text(json.dumps(report, indent=1) + "\n")
-    ok = all(v == 1.0 for v in agree.values()) and rgb_same >= 0.9999
-    return 0 if ok else 1
 
 
 if __name__ == "__main__":

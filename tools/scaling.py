@@ -119,38 +119,9 @@ def plot(path: Path, rows: list[dict], title: str) -> None:
 
 
 def main(argv: list[str] | None = None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    add_frame_arguments(ap)
-    ap.add_argument("--device", default=None, help="cpu | cuda:0 (default: a GPU if Warp sees one)")
-    ap.add_argument("--weights", default="caffe")
-    ap.add_argument("--yaw-step", type=float, default=math.radians(30.0), help="rad (default: 30 deg)")
-    ap.add_argument("--base-clip", type=float, default=0.1, help="m")
-    ap.add_argument("--base-xy", type=float, default=0.02, help="m")
-    ap.add_argument("--base-scale", type=float, default=0.5)
-    ap.add_argument("--clips", type=float, nargs="+", default=[0.05, 0.1, 0.15, 0.2], help="m")
-    ap.add_argument("--xy-steps", type=float, nargs="+", default=[0.04, 0.02, 0.01, 0.005], help="m")
-    ap.add_argument("--scales", type=float, nargs="+", default=[0.25, 0.5, 0.75, 1.0])
-    ap.add_argument("--repeat", type=int, default=1, help="runs per point; the fastest is kept (default 1)")
-    ap.add_argument("--out", type=Path, default=Path("perch_warp_scaling"), help="folder for scaling.json/.png")
-    args = ap.parse_args(argv)
+    args = _parser().parse_args(argv)
     try:
-        if args.repeat < 1:
-            raise PerchError(f"--repeat must be at least 1, got {args.repeat}")
-        dataset = args.dataset or default_dataset()
-        if dataset is None:
-            raise PerchError("no --dataset given and shared/data/ycbv not found (set PERCH_WARP_SHARED)")
-        points = plan(args)
-        w0 = load_workload(dataset, args.scene, args.image, args.obj, args.base_clip, args.base_xy, args.yaw_step)
-        for p in points:
-            space_fn = protocol.visible_table_space(p["xy_step_m"], args.yaw_step, p["clip_m"])
-            p["workload"] = dataclasses.replace(w0, space=space_fn(w0.camera, w0.table, w0.resting))
-            len(p["workload"].space)  # validates every point before any search
-        weights = load_feature_weights(args.weights)
-        device = args.device or default_device()
-        engines = {
-            k: Engine(w0.mesh, weights, device, EngineConfig(image_scale=k, search="exhaustive", refine=False))
-            for k in {p["image_scale"] for p in points}
-        }
+        w0, points, device, engines = _setup(args)
     except PerchError as e:
         print(f"scaling: error: {e}", file=sys.stderr)
         return 1
@@ -173,6 +144,52 @@ def main(argv: list[str] | None = None) -> int:
             f"{row['evaluated']:>8}{row['rays']:>12,}{row['search_s']:>10.3f}{row['wall_s']:>8.3f}  {row['renderer']}",
             flush=True,
         )
+    _write(args, device, w0, rows)
+    return 0
+
+
+def _parser() -> argparse.ArgumentParser:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    add_frame_arguments(ap)
+    ap.add_argument("--device", default=None, help="cpu | cuda:0 (default: a GPU if Warp sees one)")
+    ap.add_argument("--weights", default="caffe")
+    ap.add_argument("--yaw-step", type=float, default=math.radians(30.0), help="rad (default: 30 deg)")
+    ap.add_argument("--base-clip", type=float, default=0.1, help="m")
+    ap.add_argument("--base-xy", type=float, default=0.02, help="m")
+    ap.add_argument("--base-scale", type=float, default=0.5)
+    ap.add_argument("--clips", type=float, nargs="+", default=[0.05, 0.1, 0.15, 0.2], help="m")
+    ap.add_argument("--xy-steps", type=float, nargs="+", default=[0.04, 0.02, 0.01, 0.005], help="m")
+    ap.add_argument("--scales", type=float, nargs="+", default=[0.25, 0.5, 0.75, 1.0])
+    ap.add_argument("--repeat", type=int, default=1, help="runs per point; the fastest is kept (default 1)")
+    ap.add_argument("--out", type=Path, default=Path("perch_warp_scaling"), help="folder for scaling.json/.png")
+    return ap
+
+
+def _setup(args: argparse.Namespace):
+    """(base workload, the points each with its workload, device, an engine per image scale), every
+    point's space validated before any search; PerchError when one cannot be had."""
+    if args.repeat < 1:
+        raise PerchError(f"--repeat must be at least 1, got {args.repeat}")
+    dataset = args.dataset or default_dataset()
+    if dataset is None:
+        raise PerchError("no --dataset given and shared/data/ycbv not found (set PERCH_WARP_SHARED)")
+    points = plan(args)
+    w0 = load_workload(dataset, args.scene, args.image, args.obj, args.base_clip, args.base_xy, args.yaw_step)
+    for p in points:
+        space_fn = protocol.visible_table_space(p["xy_step_m"], args.yaw_step, p["clip_m"])
+        p["workload"] = dataclasses.replace(w0, space=space_fn(w0.camera, w0.table, w0.resting))
+        len(p["workload"].space)  # validates every point before any search
+    weights = load_feature_weights(args.weights)
+    device = args.device or default_device()
+    engines = {
+        k: Engine(w0.mesh, weights, device, EngineConfig(image_scale=k, search="exhaustive", refine=False))
+        for k in {p["image_scale"] for p in points}
+    }
+    return w0, points, device, engines
+
+
+def _write(args: argparse.Namespace, device: str, w0: Workload, rows: list[dict]) -> None:
+    """OUT/scaling.json (the settings and every point) and OUT/scaling.png."""
     out = args.out
     out.mkdir(parents=True, exist_ok=True)
     meta = {
@@ -191,7 +208,6 @@ def main(argv: list[str] | None = None) -> int:
     )
     plot(out / "scaling.png", rows, title)
     print(f"wrote {out / 'scaling.json'} and {out / 'scaling.png'}")
-    return 0
 
 
 if __name__ == "__main__":

@@ -172,64 +172,73 @@ def rescore(args: argparse.Namespace) -> None:
             if tg.obj_id not in engines:
                 cfg = EngineConfig(search="pruned", refine=False, score=spec)
                 engines[tg.obj_id] = Engine(meshes[tg.obj_id], weights, "cpu", cfg)
-            eng = engines[tg.obj_id]
-            table, _ = tables.get(im)
-            resting, *_ = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
-            cell = _cell(row["gt"])
-            pool = np.asarray(row["pool"], dtype=np.float64).reshape(-1, 3)
-            # Distractors are refined like the truth, so that neither side gains from the finer cell.
-            peaks = [_cell(p) for p in far_peaks(pool, row["gt"], args.peaks)]
-            others = np.concatenate([pool, *peaks])
-            grid_truth = _grid_neighbours(row["gt"])
-            poses = np.concatenate([others, cell, grid_truth])
-            sc = eng.score(load_rgb(im.rgb), im.camera, table, resting, *poses.T)
-            n_o, n_c = len(others), len(cell)
-
-            def adds(i: int, table=table, resting=resting, poses=poses, tg=tg) -> float:
-                R, t = model_to_camera(table, resting, *poses[i : i + 1].T)
-                return pose_error.adi(R[0], t[0], tg.R_gt, tg.t_gt_m, points[tg.obj_id])
-
-            # "fine": the best peaks are all refined (truth's cell and the distractors' cells compete).
-            e = adds(int(np.argmax(sc[: n_o + n_c])))
-            # "grid": only the grid's best is refined: the truth competes with its grid neighbours only, and
-            # wins refined (its cell's best) when one of them beats every grid pose of the distractors.
-            on_grid = np.flatnonzero(_on_grid(others))
-            far = on_grid[np.argmax(sc[on_grid])]
-            e_grid = adds(n_o + int(np.argmax(sc[n_o : n_o + n_c]))) if sc[n_o + n_c :].max() > sc[far] else adds(far)
-            pool_best = float(sc[:n_o].max())
-            cell_best = float(sc[n_o : n_o + n_c].max())
-            grid_best = float(sc[n_o + n_c :].max())
-            out.append(
-                {
-                    "key": row["key"],
-                    "obj_id": tg.obj_id,
-                    "adds_m": e,
-                    "adds_grid_m": e_grid,
-                    "cell": cell_best,
-                    "grid": grid_best,
-                    "pool": pool_best,
-                }
-            )
-            if args.verbose:
-                print(
-                    f"  {row['key']} obj {tg.obj_id}: truth's cell {cell_best:.4f} (grid {grid_best:.4f}), "
-                    f"others {pool_best:.4f}, ADD-S {100 * e:.2f} cm (grid only: {100 * e_grid:.2f} cm)",
-                    file=sys.stderr,
-                )
+            out.append(_rescore_target(engines[tg.obj_id], im, tg, row, tables, points[tg.obj_id], args))
         results[spec] = out
-        e = np.array([o["adds_m"] for o in out])
-        g = np.array([o["adds_grid_m"] for o in out])
-        print(
-            f"{spec:40s} n {len(e)}  AUC {pose_error.auc(e):6.2f}  <2cm {100 * np.mean(e < 0.02):6.2f} %  "
-            f"grid only: AUC {pose_error.auc(g):6.2f}  <2cm {100 * np.mean(g < 0.02):6.2f} %  "
-            f"({time.perf_counter() - t0:.0f} s)",
-            file=sys.stderr,
-            flush=True,
-        )
+        _print_score_line(spec, out, t0)
     report = summarise(results, args.score[0])
     print(report["text"])
     if args.out:
         args.out.write_text(json.dumps({"pool": str(args.pool), "results": results, "summary": report}, indent=1))
+
+
+def _rescore_target(eng: Engine, im, tg, row: dict, tables, points: np.ndarray, args: argparse.Namespace) -> dict:
+    """One pooled target rescored by `eng`: the ADD-S (m) of the pose its score picks with every peak refined
+    and with only the grid's best refined, and the best scores of the truth's cell, its grid neighbours
+    and the pool (printed with --verbose)."""
+    table, _ = tables.get(im)
+    resting, *_ = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
+    cell = _cell(row["gt"])
+    pool = np.asarray(row["pool"], dtype=np.float64).reshape(-1, 3)
+    # Distractors are refined like the truth, so that neither side gains from the finer cell.
+    peaks = [_cell(p) for p in far_peaks(pool, row["gt"], args.peaks)]
+    others = np.concatenate([pool, *peaks])
+    grid_truth = _grid_neighbours(row["gt"])
+    poses = np.concatenate([others, cell, grid_truth])
+    sc = eng.score(load_rgb(im.rgb), im.camera, table, resting, *poses.T)
+    n_o, n_c = len(others), len(cell)
+
+    def adds(i: int) -> float:
+        R, t = model_to_camera(table, resting, *poses[i : i + 1].T)
+        return pose_error.adi(R[0], t[0], tg.R_gt, tg.t_gt_m, points)
+
+    # "fine": the best peaks are all refined (truth's cell and the distractors' cells compete).
+    e = adds(int(np.argmax(sc[: n_o + n_c])))
+    # "grid": only the grid's best is refined: the truth competes with its grid neighbours only, and
+    # wins refined (its cell's best) when one of them beats every grid pose of the distractors.
+    on_grid = np.flatnonzero(_on_grid(others))
+    far = on_grid[np.argmax(sc[on_grid])]
+    e_grid = adds(n_o + int(np.argmax(sc[n_o : n_o + n_c]))) if sc[n_o + n_c :].max() > sc[far] else adds(far)
+    pool_best = float(sc[:n_o].max())
+    cell_best = float(sc[n_o : n_o + n_c].max())
+    grid_best = float(sc[n_o + n_c :].max())
+    if args.verbose:
+        print(
+            f"  {row['key']} obj {tg.obj_id}: truth's cell {cell_best:.4f} (grid {grid_best:.4f}), "
+            f"others {pool_best:.4f}, ADD-S {100 * e:.2f} cm (grid only: {100 * e_grid:.2f} cm)",
+            file=sys.stderr,
+        )
+    return {
+        "key": row["key"],
+        "obj_id": tg.obj_id,
+        "adds_m": e,
+        "adds_grid_m": e_grid,
+        "cell": cell_best,
+        "grid": grid_best,
+        "pool": pool_best,
+    }
+
+
+def _print_score_line(spec: str, out: list[dict], t0: float) -> None:
+    """One score's line on stderr: AUC and < 2 cm with every peak refined and with the grid's best only."""
+    e = np.array([o["adds_m"] for o in out])
+    g = np.array([o["adds_grid_m"] for o in out])
+    print(
+        f"{spec:40s} n {len(e)}  AUC {pose_error.auc(e):6.2f}  <2cm {100 * np.mean(e < 0.02):6.2f} %  "
+        f"grid only: AUC {pose_error.auc(g):6.2f}  <2cm {100 * np.mean(g < 0.02):6.2f} %  "
+        f"({time.perf_counter() - t0:.0f} s)",
+        file=sys.stderr,
+        flush=True,
+    )
 
 
 def summarise(results: dict[str, list[dict]], base: str, n_boot: int = 2000, seed: int = 0) -> dict:

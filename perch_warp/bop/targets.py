@@ -83,13 +83,30 @@ def select_targets(
     a target. Cameras (image size against cam_K) and the availability of a table frame
     are checked here, before any search, so a bad dataset fails at once.
     """
+    wanted = set(objects) if objects else None
+    all_scenes = _selected_scenes(ds, scenes)
+    model_paths = _asked_models(ds, wanted)
+    images: list[ImageInfo] = []
+    skipped: Counter = Counter()
+    for scene_id in all_scenes:
+        room = None if max_images is None else max_images - len(images)
+        images += _scene_images(ds, scene_id, wanted, model_paths, skipped, table_source, room)
+    return Selection(images, skipped, model_paths)
+
+
+def _selected_scenes(ds: Dataset, scenes: Sequence[int] | None) -> list[int]:
+    """The dataset's scene ids, only those in `scenes` if given (each of which must exist)."""
     all_scenes = ds.scene_ids()
     if scenes:
         missing = sorted(set(scenes) - set(all_scenes))
         if missing:
             raise PerchError(f"scene(s) {missing} not found in {ds.split_dir} (has {all_scenes[:20]})")
         all_scenes = [s for s in all_scenes if s in set(scenes)]
-    wanted = set(objects) if objects else None
+    return all_scenes
+
+
+def _asked_models(ds: Dataset, wanted: set[int] | None) -> dict[int, Path]:
+    """The mesh of every object asked for; a missing one is an error naming the expected file."""
     model_paths: dict[int, Path] = {}
     for obj_id in sorted(wanted or ()):
         p = ds.model_path(obj_id)
@@ -97,43 +114,68 @@ def select_targets(
             expected = ds.models_dir / f"obj_{obj_id:06d}.obj"
             raise PerchError(f"no mesh for object {obj_id}: expected {expected} (or .ply)")
         model_paths[obj_id] = p
+    return model_paths
 
+
+def _scene_images(
+    ds: Dataset,
+    scene_id: int,
+    wanted: set[int] | None,
+    model_paths: dict[int, Path],
+    skipped: Counter,
+    table_source: str,
+    room: int | None,
+) -> list[ImageInfo]:
+    """The scene's images that have a target (at most `room` of them, when given), in image order,
+    each checked (camera, image file, table frame); instances without a mesh are counted in `skipped`."""
+    sdir = ds.scene_dir(scene_id)
+    gt_file, cam_file, info_file = sdir / "scene_gt.json", sdir / "scene_camera.json", sdir / "scene_gt_info.json"
+    gts = load_scene_gt(gt_file)
+    cams = load_scene_camera(cam_file)
+    infos = load_scene_gt_info(info_file) if info_file.exists() else None
     images: list[ImageInfo] = []
-    skipped: Counter = Counter()
-    for scene_id in all_scenes:
-        sdir = ds.scene_dir(scene_id)
-        gt_file, cam_file, info_file = sdir / "scene_gt.json", sdir / "scene_camera.json", sdir / "scene_gt_info.json"
-        gts = load_scene_gt(gt_file)
-        cams = load_scene_camera(cam_file)
-        infos = load_scene_gt_info(info_file) if info_file.exists() else None
-        for im_id in sorted(gts):
-            if max_images is not None and len(images) >= max_images:
-                break
-            targets = []
-            # A missing entry is an error below, once the image is known to have targets.
-            labels = image_labels(cams.get(im_id, {}))
-            for k, g in enumerate(gts[im_id]):
-                if wanted is not None and g.obj_id not in wanted:
-                    continue
-                if not _has_mesh(ds, g.obj_id, model_paths):
-                    skipped[g.obj_id] += 1
-                    continue
-                vf = _visib_fract(infos, im_id, k, len(gts[im_id]), info_file, gt_file)
-                targets.append(
-                    Target(scene_id, im_id, k, g.obj_id, g.R_m2c, g.t_m2c_m, vf, dict(labels), g.projected, g.problem)
-                )
-            if not targets:
+    for im_id in sorted(gts):
+        if room is not None and len(images) >= room:
+            break
+        targets = []
+        # A missing entry is an error below, once the image is known to have targets.
+        labels = image_labels(cams.get(im_id, {}))
+        for k, g in enumerate(gts[im_id]):
+            if wanted is not None and g.obj_id not in wanted:
                 continue
-            if im_id not in cams:
-                raise PerchError(f"{cam_file} has no entry for image {im_id} (listed in {gt_file})")
-            rgb = image_path(sdir, im_id, "rgb")
-            if rgb is None:
-                raise PerchError(f"image not found: {sdir / 'rgb' / f'{im_id:06d}.png'} (listed in {gt_file})")
-            entry = cams[im_id]
-            camera = camera_for_image(ds, entry, rgb, im_id, cam_file)
-            table_source_for(entry, sdir, im_id, cam_file, table_source)  # fail before any search
-            images.append(ImageInfo(scene_id, im_id, rgb, camera, entry, cam_file, targets))
-    return Selection(images, skipped, model_paths)
+            if not _has_mesh(ds, g.obj_id, model_paths):
+                skipped[g.obj_id] += 1
+                continue
+            vf = _visib_fract(infos, im_id, k, len(gts[im_id]), info_file, gt_file)
+            targets.append(
+                Target(scene_id, im_id, k, g.obj_id, g.R_m2c, g.t_m2c_m, vf, dict(labels), g.projected, g.problem)
+            )
+        if targets:
+            images.append(_checked_image(ds, sdir, scene_id, im_id, cams, cam_file, gt_file, table_source, targets))
+    return images
+
+
+def _checked_image(
+    ds: Dataset,
+    sdir: Path,
+    scene_id: int,
+    im_id: int,
+    cams: dict,
+    cam_file: Path,
+    gt_file: Path,
+    table_source: str,
+    targets: list[Target],
+) -> ImageInfo:
+    """An image that has targets, with its camera entry, photo and table frame checked before any search."""
+    if im_id not in cams:
+        raise PerchError(f"{cam_file} has no entry for image {im_id} (listed in {gt_file})")
+    rgb = image_path(sdir, im_id, "rgb")
+    if rgb is None:
+        raise PerchError(f"image not found: {sdir / 'rgb' / f'{im_id:06d}.png'} (listed in {gt_file})")
+    entry = cams[im_id]
+    camera = camera_for_image(ds, entry, rgb, im_id, cam_file)
+    table_source_for(entry, sdir, im_id, cam_file, table_source)  # fail before any search
+    return ImageInfo(scene_id, im_id, rgb, camera, entry, cam_file, targets)
 
 
 def _has_mesh(ds: Dataset, obj_id: int, model_paths: dict[int, Path]) -> bool:

@@ -122,12 +122,7 @@ def run(args: argparse.Namespace) -> int:
     if not (math.isfinite(args.roll_step) and 0 < args.roll_step <= 360):
         raise PerchError(f"--roll-step must be in (0, 360] degrees, got {args.roll_step}")
     config = _joint_setup(args, config)
-    options = {k: v for k, v in sorted(vars(args).items()) if k not in NOT_SEARCH_OPTIONS and k not in _EVAL_ARGS}
-    if args.rest == "truth":  # as before --rest existed, so that earlier OUTDIRs still resume
-        options.pop("rest")
-        options.pop("roll_step")
-    if not args.joint:  # likewise for --joint
-        options = {k: v for k, v in options.items() if k not in ("joint", "joint_peaks")}
+    options = _search_options(args)
 
     def space_fn(camera: Camera, table: Table, resting: RestingPose):
         # The region depends on the view and the table only: never on the ground truth.
@@ -168,12 +163,28 @@ def run(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
         return 130
+    return _report(summary, args.out)
+
+
+def _search_options(args: argparse.Namespace) -> dict:
+    """The search settings by option name, recorded in eval_config.json and checked on resume."""
+    options = {k: v for k, v in sorted(vars(args).items()) if k not in NOT_SEARCH_OPTIONS and k not in _EVAL_ARGS}
+    if args.rest == "truth":  # as before --rest existed, so that earlier OUTDIRs still resume
+        options.pop("rest")
+        options.pop("roll_step")
+    if not args.joint:  # likewise for --joint
+        options = {k: v for k, v in options.items() if k not in ("joint", "joint_peaks")}
+    return options
+
+
+def _report(summary: dict, out: Path) -> int:
+    """Print the summary table and what was written; exit status 1 when a target failed, else 0."""
     print(summary["table_text"])
-    print(f"wrote {', '.join(summary['outputs'])} in {args.out}")
+    print(f"wrote {', '.join(summary['outputs'])} in {out}")
     if summary["n_failed"]:
         print(
             f"perch_warp: {summary['n_failed']} of {summary['n_targets']} targets failed (reasons in "
-            f"{args.out / 'per_target.csv'}); the others are evaluated",
+            f"{out / 'per_target.csv'}); the others are evaluated",
             file=sys.stderr,
         )
         return 1

@@ -56,11 +56,12 @@ def refine(service: ScoringService, space: SearchSpace, top: list, grid_search: 
         "rays": out.stats.rays,
     }
     service.lap("refine", t)
+    return [best, *(c for c in top[1:] if not same_pose(c, best))], info
 
-    def same(c) -> bool:
-        return abs(c[0] - best[0]) < 1e-9 and abs(c[1] - best[1]) < 1e-9 and abs(c[2] - best[2]) < 1e-9
 
-    return [best, *(c for c in top[1:] if not same(c))], info
+def same_pose(a: tuple, b: tuple) -> bool:
+    """Poses (x_m, y_m, yaw_rad, ...) a and b are the same pose (to 1e-9 in each coordinate)."""
+    return all(abs(a[j] - b[j]) < 1e-9 for j in range(3))
 
 
 def probe(service: ScoringService, space: SearchSpace, pose: tuple[float, float, float], grid_search: str) -> dict:
@@ -89,13 +90,14 @@ def place_yaws(service: ScoringService, space: SearchSpace, place: tuple, m: int
     return [place, *((x, y, float(yaws[i]), float(scores[i])) for i in idx[1:])]
 
 
-def refine_place(service: ScoringService, space: SearchSpace, place: tuple, grid_search: str):
+def refine_place(service: ScoringService, space: SearchSpace, place: tuple, grid_search: str, refine_fn=None):
     """The best of `refine` over place_yaws(place): (refined pose, that refinement's info with
-    "yaws_deg": the grid yaws refined at this place)."""
+    "yaws_deg": the grid yaws refined at this place). refine_fn, if given, is called instead of `refine`
+    with the same arguments (tools/peaks_check.py: a cache of refinements shared by its strategies)."""
     best = None
     poses = place_yaws(service, space, place, service.config.refine_yaws)
     for pose in poses:
-        out, info = refine(service, space, [pose], grid_search)
+        out, info = (refine_fn or refine)(service, space, [pose], grid_search)
         if best is None or out[0][3] > best[0][3]:  # ties to the place's own grid best
             best = (out[0], info)
     return best[0], {**best[1], "yaws_deg": [math.degrees(p[2]) for p in poses]}
@@ -109,13 +111,33 @@ def refine_peaks(service: ScoringService, space: SearchSpace, top: list, grid_se
     cfg = service.config
     if cfg.refine_peaks <= 1 and cfg.refine_yaws <= 1:
         return refine(service, space, top, grid_search)
-    idx = distinct_peaks(top, cfg.refine_peaks, SEPARATION_STEPS * space.xy_step_m)
-    refined = [refine_place(service, space, top[i], grid_search) for i in idx]
-    order = sorted(range(len(refined)), key=lambda n: -refined[n][0][3])  # stable: ties to the better grid peak
-    peaks = [
-        {"from": i["from"], "yaws_deg": i["yaws_deg"], "x_m": c[0], "y_m": c[1], "yaw_rad": c[2], "score": c[3]}
-        for c, i in refined
-    ]
-    best_info = {**refined[order[0]][1], "peaks": peaks}
+    idx, refined, order = refine_each(
+        top, cfg.refine_peaks, space, lambda i: refine_place(service, space, top[i], grid_search)
+    )
+    best_info = {**refined[order[0]][1], "peaks": [peak_summary(c, i) for c, i in refined]}
     seen = {tuple(top[i][:3]) for i in idx}
     return [*(refined[n][0] for n in order), *(c for c in top if tuple(c[:3]) not in seen)], best_info
+
+
+def refine_each(top: list, n: int, space: SearchSpace, refine_at):
+    """refine_at(i) -> (refined pose, info), refine_place's pair, at each of top's best n distinct peaks
+    (perch_warp.peaks.distinct_peaks: top holds the best candidate of each of the best locations, sorted
+    best first; peaks are locations apart). Returns (the peaks' indices in top, their refinements, the
+    refinements' order best first; stable: ties to the better grid peak)."""
+    idx = distinct_peaks([c[:4] for c in top], n, SEPARATION_STEPS * space.xy_step_m)
+    refined = [refine_at(i) for i in idx]
+    order = sorted(range(len(refined)), key=lambda m: -refined[m][0][3])
+    return idx, refined, order
+
+
+def peak_summary(pose: tuple, info: dict) -> dict:
+    """A refined peak as info["peaks"] lists it: where its refinement started, the grid yaws refined
+    there and the refined pose (x_m, y_m, yaw_rad, score, ...)."""
+    return {
+        "from": info["from"],
+        "yaws_deg": info["yaws_deg"],
+        "x_m": pose[0],
+        "y_m": pose[1],
+        "yaw_rad": pose[2],
+        "score": pose[3],
+    }

@@ -19,12 +19,12 @@ import math
 
 import numpy as np
 
-from ..peaks import SEPARATION_STEPS, distinct_peaks, top_location_candidates
+from ..peaks import top_location_candidates
 from ..search_space import SearchSpace
 from . import get
 from .base import Outcome, top_indices
 from .pruned import Incumbent
-from .refine import refine_place
+from .refine import peak_summary, refine_each, refine_place, same_pose
 from .scoring import ScoringService, SearchStats
 
 #: a scored pose: (x_m, y_m, yaw_rad, score, index of its resting pose)
@@ -77,33 +77,22 @@ def refine_joint(services: list[ScoringService], space: SearchSpace, top: list[T
     """search.refine's refinement on the joint top: the best peak (or the best `refine_peaks` distinct
     places, each at its own best pose) refined under its resting pose; the best refined first, then the
     runners-up. Returns (top, info)."""
-    n = config.refine_peaks if config.refine_peaks > 1 else 1
-    idx = distinct_peaks([c[:4] for c in top], n, SEPARATION_STEPS * space.xy_step_m) if n > 1 else [0]
-    refined = []
-    for i in idx:
+    n = max(config.refine_peaks, 1)
+
+    def refine_at(i: int):
         p = top[i][4]
         best, info = refine_place(services[p], space, top[i][:4], search)  # --refine-yaws yaws of the place
-        refined.append(((*best, p), info))
-    order = sorted(range(len(refined)), key=lambda m: -refined[m][0][3])  # stable: ties to the better grid peak
+        return (*best, p), info
+
+    idx, refined, order = refine_each(top, n, space, refine_at)
     info = dict(refined[order[0]][1])
     if n > 1:
-        info["peaks"] = [
-            {
-                "from": i["from"],
-                "yaws_deg": i["yaws_deg"],
-                "x_m": c[0],
-                "y_m": c[1],
-                "yaw_rad": c[2],
-                "score": c[3],
-                "rest": c[4],
-            }
-            for c, i in refined
-        ]
+        info["peaks"] = [{**peak_summary(c, i), "rest": c[4]} for c, i in refined]
     best = [refined[m][0] for m in order]
     drop = [top[i] for i in idx] + best  # the refined grid poses, and runners-up a refinement landed on
 
     def same(a: Top, b: Top) -> bool:
-        return a[4] == b[4] and all(abs(a[j] - b[j]) < 1e-9 for j in range(3))
+        return a[4] == b[4] and same_pose(a, b)
 
     return [*best, *(c for c in top if not any(same(c, d) for d in drop))], info
 

@@ -103,6 +103,28 @@ def generate(
         models, targets, distractors, lighting, occlusion, width, height, K, spp, int(seed), max_objects, threads
     )
 
+    results = _build_dataset(cfg, out_dir, n_images, n_workers, progress, models_dir, mitsuba_version)
+    secs = [r["seconds"]["total"] for r in results]
+    return {
+        "out": str(out_dir),
+        "images": n_images,
+        "workers": n_workers,
+        "seconds_per_image_mean": float(np.mean(secs)),
+        "seconds_per_image_max": float(np.max(secs)),
+    }
+
+
+def _build_dataset(
+    cfg: Config,
+    out_dir: Path,
+    n_images: int,
+    n_workers: int,
+    progress: bool,
+    models_dir: Path,
+    mitsuba_version: str,
+) -> list[dict]:
+    """Render the images and write the dataset in a temporary sibling of out_dir, moved into place once
+    complete and removed on any failure; the images' results in image order."""
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = Path(tempfile.mkdtemp(prefix=f".{out_dir.name}.partial-", dir=out_dir.parent))
     try:
@@ -118,14 +140,7 @@ def generate(
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
-    secs = [r["seconds"]["total"] for r in results]
-    return {
-        "out": str(out_dir),
-        "images": n_images,
-        "workers": n_workers,
-        "seconds_per_image_mean": float(np.mean(secs)),
-        "seconds_per_image_max": float(np.max(secs)),
-    }
+    return results
 
 
 def _check_options(

@@ -110,8 +110,29 @@ def object_shape(cfg: Config, plan: ImagePlan, k: int, textured: bool, rng: np.r
 
 def environment_shapes(rng: np.random.Generator, plan: ImagePlan) -> dict[str, dict]:
     """Table (top, legs), floor and one wall with procedural textures; the table top is z = 0."""
-    T = np.eye(4)
     sx, sy = rng.uniform(1.2, 1.8), rng.uniform(0.8, 1.2)
+    table_bsdf = _table_top_bsdf(rng, sx, sy)
+    thick = 0.03
+    top = np.eye(4)
+    top[:3, :3] = np.diag([sx / 2, sy / 2, thick / 2])
+    top[2, 3] = -thick / 2
+    shapes: dict[str, dict] = {"table": {"type": "cube", "to_world": _transform(top), "bsdf": table_bsdf}}
+    height = rng.uniform(0.7, 0.8)
+    shapes.update(_table_legs(sx, sy, thick, height))
+    floor = np.eye(4)
+    floor[:3, :3] = np.diag([3.0, 3.0, 1.0])
+    floor[2, 3] = -height
+    shapes["floor"] = {
+        "type": "rectangle",
+        "to_world": _transform(floor),
+        "bsdf": {"type": "diffuse", "reflectance": _bitmap(floor_texture(rng, 512, 512))},
+    }
+    shapes["wall"] = _wall(rng, height)
+    return shapes
+
+
+def _table_top_bsdf(rng: np.random.Generator, sx: float, sy: float) -> dict:
+    """The table top's material (sx x sy metres): planked wood (twice as likely), laminate or cloth, textured."""
     kind = rng.choice(["wood", "wood", "laminate", "cloth"])
     tex_w = 2048
     tex_h = int(tex_w * sy / sx)
@@ -130,32 +151,29 @@ def environment_shapes(rng: np.random.Generator, plan: ImagePlan) -> dict[str, d
         table_bsdf = {"type": "diffuse"}
     key = "base_color" if table_bsdf["type"] == "principled" else "reflectance"
     table_bsdf[key] = _bitmap(tex)
-    thick = 0.03
-    top = T.copy()
-    top[:3, :3] = np.diag([sx / 2, sy / 2, thick / 2])
-    top[2, 3] = -thick / 2
-    shapes: dict[str, dict] = {"table": {"type": "cube", "to_world": _transform(top), "bsdf": table_bsdf}}
+    return table_bsdf
+
+
+def _table_legs(sx: float, sy: float, thick: float, height: float) -> dict[str, dict]:
+    """Four dark metal legs under a sx x sy top `thick` thick, reaching the floor `height` below its surface."""
     leg_bsdf = {
         "type": "principled",
         "base_color": {"type": "rgb", "value": [0.05, 0.05, 0.05]},
         "roughness": 0.3,
         "metallic": 0.6,
     }
-    height = rng.uniform(0.7, 0.8)
+    shapes = {}
     for i, (ax, ay) in enumerate(((1, 1), (1, -1), (-1, 1), (-1, -1))):
         leg = np.eye(4)
         leg[:3, :3] = np.diag([0.025, 0.025, (height - thick) / 2])
         leg[:3, 3] = [ax * (sx / 2 - 0.06), ay * (sy / 2 - 0.06), -thick - (height - thick) / 2]
         shapes[f"leg{i}"] = {"type": "cube", "to_world": _transform(leg), "bsdf": leg_bsdf}
-    floor = np.eye(4)
-    floor[:3, :3] = np.diag([3.0, 3.0, 1.0])
-    floor[2, 3] = -height
-    shapes["floor"] = {
-        "type": "rectangle",
-        "to_world": _transform(floor),
-        "bsdf": {"type": "diffuse", "reflectance": _bitmap(floor_texture(rng, 512, 512))},
-    }
-    # A wall on a random side, facing the table, so low views see a room rather than only sky.
+    return shapes
+
+
+def _wall(rng: np.random.Generator, height: float) -> dict:
+    """A plastered wall on a random side, facing the table, so low views see a room rather than only
+    sky (the floor `height` below the table top)."""
     ang = rng.uniform(0, 2 * np.pi)
     d = rng.uniform(1.3, 2.2)
     n = np.array([math.cos(ang), math.sin(ang), 0.0])
@@ -164,12 +182,11 @@ def environment_shapes(rng: np.random.Generator, plan: ImagePlan) -> dict[str, d
     tangent = np.cross(np.array([0.0, 0.0, 1.0]), -n)
     wall[:3, :3] = np.stack([tangent * 3.0, np.array([0.0, 0.0, 1.5]), -n], 1)
     wall[:3, 3] = d * n + np.array([0.0, 0.0, 1.5 - height])
-    shapes["wall"] = {
+    return {
         "type": "rectangle",
         "to_world": _transform(wall),
         "bsdf": {"type": "diffuse", "reflectance": _bitmap(plaster_texture(rng, 256, 512))},
     }
-    return shapes
 
 
 def light_shapes(rng: np.random.Generator, lighting: str, camera_height_m: float) -> dict[str, dict]:
