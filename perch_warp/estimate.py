@@ -12,9 +12,9 @@ from .bop import read_camera_json, truth_instance
 from .camera import camera_from_entry
 from .errors import PerchError
 from .image import image_header_size, load_rgb, save_png
-from .joint import DEFAULT_PEAKS
 from .mesh import load_mesh
 from .options import (
+    add_joint_peaks_argument,
     add_method_arguments,
     add_search_arguments,
     build_engine,
@@ -323,13 +323,7 @@ def _add_object_arguments(p: argparse.ArgumentParser) -> None:
         metavar="ID",
         help="object ids to find in --models (several: the joint step; with --truth, their ground truths)",
     )
-    p.add_argument(
-        "--joint-peaks",
-        type=int,
-        default=DEFAULT_PEAKS,
-        help=f"several objects: each object's best distinct peaks (refined) the joint step chooses among "
-        f"(default: {DEFAULT_PEAKS}; at least --refine-peaks)",
-    )
+    add_joint_peaks_argument(p, "several objects")
 
 
 def _add_table_arguments(p: argparse.ArgumentParser) -> None:

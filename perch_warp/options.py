@@ -10,6 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import PerchError
+from .joint import DEFAULT_PEAKS
 from .report import log
 from .search_space import SearchSpace
 
@@ -300,6 +301,17 @@ def table_with_extent(args: argparse.Namespace, table):
     if not (x0 < x1 and y0 < y1):
         raise PerchError(f"--table-extent takes X0 X1 Y0 Y1 with X0 < X1 and Y0 < Y1 (metres), got {extent}")
     return table.with_extent([[x0, y0], [x1, y0], [x1, y1], [x0, y1]])
+
+
+def add_joint_peaks_argument(p, when: str) -> None:
+    """--joint-peaks, for the image command (several objects) and eval (--joint); `when` says which."""
+    p.add_argument(
+        "--joint-peaks",
+        type=int,
+        default=DEFAULT_PEAKS,
+        help=f"{when}: each object's best distinct peaks (refined) the joint step chooses among "
+        f"(default: {DEFAULT_PEAKS}; at least --refine-peaks)",
+    )
 
 
 def build_engine(args: argparse.Namespace, mesh, quiet: bool = False, config=None, weights=None):

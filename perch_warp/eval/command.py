@@ -10,8 +10,14 @@ from pathlib import Path
 
 from ..camera import Camera
 from ..errors import PerchError
-from ..joint import DEFAULT_PEAKS, joint_config
-from ..options import add_method_arguments, add_search_arguments, engine_config_from_args, search_space_from_args
+from ..joint import joint_config
+from ..options import (
+    add_joint_peaks_argument,
+    add_method_arguments,
+    add_search_arguments,
+    engine_config_from_args,
+    search_space_from_args,
+)
 from ..outputs import check_output_dir
 from ..resting import DEFAULT_ROLL_STEP_DEG
 from ..table import RestingPose, Table
@@ -101,13 +107,7 @@ def _add_joint_arguments(parser: argparse.ArgumentParser) -> None:
         "no two footprints on one table space, no image region explained twice); the summary says, paired "
         "per target, what it changed",
     )
-    j.add_argument(
-        "--joint-peaks",
-        type=int,
-        default=DEFAULT_PEAKS,
-        help=f"--joint: each object's best distinct peaks (refined) the joint step chooses among "
-        f"(default: {DEFAULT_PEAKS})",
-    )
+    add_joint_peaks_argument(j, "--joint")
 
 
 def run(args: argparse.Namespace) -> int:
