@@ -229,10 +229,15 @@ class Engine:
             top, out.extra["refine"] = refine_peaks(service, space, top, self.search)
         return out, top[: self.config.top_k]
 
-    def _assess(self, service: ScoringService, space: SearchSpace, out: Outcome, answer, resting: RestingPose):
+    def _assess(
+        self, service: ScoringService, space: SearchSpace, out: Outcome, answer, resting: RestingPose,
+        over: list[Outcome] | None = None,
+    ):  # fmt: skip
         """(ScoreMap, Confidence) of the answer (x_m, y_m, yaw_rad): perch_warp.score_map and .confidence,
         timed as one "confidence" stage; after the pruned search, the left-out candidates that could
-        change the margin are scored (on a quiet service: not the search's stages)."""
+        change the margin are scored (on a quiet service: not the search's stages). `over`: every resting
+        pose's outcome (`out` among them), for a heat map of the best over them all; the confidence stays
+        over `out`'s grid."""
         t = time.perf_counter()
         k = knowledge(out, space, self.search)
         quiet = service.quiet()
@@ -244,7 +249,10 @@ class Engine:
             return yaw_differs(self.mesh.vertices_m, resting.R_rest, offsets)
 
         conf = grid_confidence(k, space, answer, differs, score_fn if out.bounds is not None else None)
-        smap = score_map(k, space)
+        if over is None:
+            smap = score_map(k, space)
+        else:
+            smap, _ = score_map_over_rests([k if o is out else knowledge(o, space, self.search) for o in over], space)
         service.lap("confidence", t)
         return smap, conf
 
@@ -315,10 +323,7 @@ class Engine:
                 top, extra["refine"] = over_rests.refine_joint(services, space, top, self.search, self.config)
             top = top[: self.config.top_k]
             won = top[0][4]  # the confidence over the winning resting pose's grid; the heat map over all
-            _, conf = self._assess(services[won], space, outs[won], top[0][:3], rests[won].pose)
-            ks = [knowledge(o, space, self.search) for o in outs]
-            smap, _ = score_map_over_rests(ks, space)
-            assessed = (smap, conf)
+            assessed = self._assess(services[won], space, outs[won], top[0][:3], rests[won].pose, over=outs)
             wall_s = time.perf_counter() - t_start
             if probe is not None:  # a diagnostic: timed apart, not part of the search's total
                 t_probe = time.perf_counter()

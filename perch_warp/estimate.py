@@ -9,7 +9,7 @@ from pathlib import Path
 from typing import NamedTuple
 
 from .bop import read_camera_json, truth_instance
-from .camera import camera_from_entry
+from .camera import Camera, camera_from_entry
 from .errors import PerchError
 from .image import image_header_size, load_rgb, save_png
 from .mesh import load_mesh
@@ -52,18 +52,12 @@ def run(args: argparse.Namespace) -> int:
     engine_config_from_args(args)
     args.rest = resolve_rest(args)
     check_outputs(args)
-    width, height = image_header_size(args.image)
-    image_id = image_id_of(args)
-    entry = camera_entry(args, image_id)
-    camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
-    table = table_with_extent(args, Table.from_entry(entry, source=args.camera))
+    image_id, camera, table = photo_inputs(args)
     truth, truth_resting = read_truth(args, image_id, table)
     mesh = load_mesh(args.mesh, args.mesh_units, untextured=args.untextured)
     space = search_space_from_args(args, camera, table)
     rests = rests_for(args, mesh, truth_resting)
-    image = load_rgb(args.image)
-    if image.shape[:2] != (height, width):  # the file changed since its header was read
-        raise PerchError(f"image {args.image} changed while being read")
+    image = load_photo(args, camera)
     if not args.quiet:
         log(f"mesh: {mesh.source}, units {mesh.units_note}, {len(mesh.faces)} faces")
         log(f"search: {space.describe()}" + extent_note(table))
@@ -97,6 +91,24 @@ def run(args: argparse.Namespace) -> int:
 
         write_heatmap(args.heatmap, image, camera, table, result, None if truth is None else truth[2:4])
     return 0
+
+
+def photo_inputs(args: argparse.Namespace) -> tuple[int | None, Camera, Table]:
+    """The image's id, its camera (checked against the image header's size) and the table frame (with
+    --table-extent): everything about the photo but its pixels, read cheaply before any search."""
+    width, height = image_header_size(args.image)
+    image_id = image_id_of(args)
+    entry = camera_entry(args, image_id)
+    camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
+    return image_id, camera, table_with_extent(args, Table.from_entry(entry, source=args.camera))
+
+
+def load_photo(args: argparse.Namespace, camera: Camera):
+    """The image's pixels, refused if the file changed since photo_inputs read its header."""
+    image = load_rgb(args.image)
+    if image.shape[:2] != (camera.height, camera.width):
+        raise PerchError(f"image {args.image} changed while being read")
+    return image
 
 
 class ObjectSpec(NamedTuple):

@@ -8,14 +8,13 @@ import argparse
 import math
 from pathlib import Path
 
-from .camera import camera_from_entry
 from .errors import PerchError
 from .estimate import (
     ObjectSpec,
-    camera_entry,
     check_outputs,
     extent_note,
-    image_id_of,
+    load_photo,
+    photo_inputs,
     read_truth,
     resolve_rest,
     rest_line,
@@ -23,11 +22,11 @@ from .estimate import (
     truth_error,
 )
 from .features import load_feature_weights
-from .image import image_header_size, load_rgb, save_png
+from .image import save_png
 from .joint import joint_config
 from .mesh import load_mesh
 from .objects import ObjectAnswer, estimate_objects
-from .options import build_engine, engine_config_from_args, search_space_from_args, table_with_extent
+from .options import build_engine, engine_config_from_args, search_space_from_args
 from .outputs import check_output_file
 from .overlay import caption, overlay_rendering
 from .report import log, timing_line, write_json_atomic
@@ -58,16 +57,10 @@ def run_several(args: argparse.Namespace, objects: list[ObjectSpec]) -> int:
     if args.heatmap:
         for n, o in enumerate(objects):
             check_output_file(heatmap_path(args.heatmap, n, o), "--heatmap")
-    width, height = image_header_size(args.image)
-    image_id = image_id_of(args)
-    entry = camera_entry(args, image_id)
-    camera = camera_from_entry(entry, width, height, source=args.camera, image=args.image)
-    table = table_with_extent(args, Table.from_entry(entry, source=args.camera))
+    image_id, camera, table = photo_inputs(args)
     space = search_space_from_args(args, camera, table)
     meshes, truths, restings = _load_objects(args, objects, image_id, table)
-    image = load_rgb(args.image)
-    if image.shape[:2] != (height, width):
-        raise PerchError(f"image {args.image} changed while being read")
+    image = load_photo(args, camera)
     weights = load_feature_weights(args.weights)
     engines = [build_engine(args, m, args.quiet or n > 0, config, weights) for n, m in enumerate(meshes)]
     if not args.quiet:

@@ -78,9 +78,7 @@ def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray
     first = jobs[0]
     if any(j.space.describe() != first.space.describe() for j in jobs):
         raise PerchError("eval --joint needs one search region per image (a region function that ignores the object)")
-    for j in jobs:
-        estimator.prepare(j.target.obj_id)
-    engines = [estimator.engine(j.target.obj_id) for j in jobs]
+    engines = [estimator.engine(j.target.obj_id) for j in jobs]  # each built on first use
     searched = [estimator.searched(j.target, j.resting) for j in jobs]
     probes = [estimator.probe(j.target, j.table, j.resting) for j in jobs]
     names = [f"obj {j.target.obj_id}" for j in jobs]
