@@ -14,7 +14,10 @@ colour where the candidate's mask covers it and, elsewhere, the photo's colour
 the preprocessing mean, so that only the render counts; perch_warp.score_terms).
 
 A point's value is cos(R, I) * gain - offset, with the photo's per-point maps `PointWeights`
-(gain = rarity, offset = what the background alone earns; 0 for the thesis's score).
+(gain = rarity, offset = what the background alone earns; 0 for the thesis's score). With shifts
+(the grid stage's tolerance, perch_warp.score_terms `shift`), a point is also compared with the
+photo's feature d = (dx, dy) grid cells away, for every d of `shifts`: value s of point i lands at
+out[s * n_points + i], so each shift's values are laid out like the unshifted ones.
 
 Weights arrive folded with the network's preprocessing (they act on RGB in [0, 1])
 and tap-major: Wt[(dy * ks + dx) * 3 + ch_in] is a C-vector over output channels,
@@ -219,6 +222,37 @@ def feature_kernels(C: int):
         return cos * pw.gain[gy, gx] - pw.offset[gy, gx]
 
     @wp.func
+    def shifted_values(
+        f: vecC,
+        obs_feat: wp.array2d(dtype=vecC),
+        obs_norm: wp.array2d(dtype=float),
+        pw: PointWeights,
+        gx: int,
+        gy: int,
+        share: float,
+        shifts: wp.array(dtype=wp.vec2i),
+        n_points: int,
+        i: int,
+        out: wp.array(dtype=float),
+    ):
+        """out[s n_points + i] = weighted_cosine of f with the photo's feature shifts[s] cells away from
+        (gx, gy); 0 where that cell is beyond the photo's feature grid (as for an unshifted point there)."""
+        grid = wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0])
+        for s in range(shifts.shape[0]):
+            hx = gx + shifts[s][0]
+            hy = gy + shifts[s][1]
+            value = float(0.0)
+            if in_box(grid, hx, hy):
+                value = weighted_cosine(f, obs_feat[hy, hx], obs_norm[hy, hx], pw, hx, hy, share)
+            out[s * n_points + i] = value
+
+    @wp.func
+    def not_compared(value: float, shifts: wp.array(dtype=wp.vec2i), n_points: int, i: int, out: wp.array(dtype=float)):
+        """A point that is not compared (point_to_compare) holds the same value under every shift."""
+        for s in range(shifts.shape[0]):
+            out[s * n_points + i] = value
+
+    @wp.func
     def conv_at(
         image: wp.array2d(dtype=wp.vec3),
         rgb: wp.array(dtype=wp.vec3),
@@ -288,18 +322,19 @@ def feature_kernels(C: int):
         obs_feat: wp.array2d(dtype=vecC),
         obs_norm: wp.array2d(dtype=float),
         pw: PointWeights,
+        shifts: wp.array(dtype=wp.vec2i),
         out: wp.array(dtype=float),
     ):
         i = wp.tid()
         compared, value, c, gx, gy, u, v = point_to_compare(seen, pts, obs_feat.shape[0], obs_feat.shape[1], i)
         if not compared:
-            out[i] = value
+            not_compared(value, shifts, pts.n_points, i, out)
             return
         roff = seen.pix_off[c]
         rb = seen.box[c]
         f = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, relu, sur)
         share = window_share(sur, seen.mask, roff, rb, u, v, pts.ks)
-        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy, share)
+        shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, out)
 
     @wp.kernel(enable_backward=False, module="unique")
     def score_features(
@@ -311,15 +346,16 @@ def feature_kernels(C: int):
         obs_feat: wp.array2d(dtype=vecC),
         obs_norm: wp.array2d(dtype=float),
         pw: PointWeights,
+        shifts: wp.array(dtype=wp.vec2i),
         out: wp.array(dtype=float),
     ):
         """score_points' values from features convolved elsewhere: candidate c's conv1 output as C
         planes of its points (row by row in its grid box) from C pts.pt_off[c] in feat; the same points
-        on and off the mask, the same cosine."""
+        on and off the mask, the same cosine, the same shifts."""
         i = wp.tid()
         compared, value, c, gx, gy, u, v = point_to_compare(seen, pts, obs_feat.shape[0], obs_feat.shape[1], i)
         if not compared:
-            out[i] = value
+            not_compared(value, shifts, pts.n_points, i, out)
             return
         first = pts.pt_off[c]
         n = pts.pt_off[c + 1] - first
@@ -329,6 +365,6 @@ def feature_kernels(C: int):
             f[ch] = feat[at + ch * n]
         f = rectified(f, relu)
         share = window_share(sur, seen.mask, seen.pix_off[c], seen.box[c], u, v, pts.ks)
-        out[i] = weighted_cosine(f, obs_feat[gy, gx], obs_norm[gy, gx], pw, gx, gy, share)
+        shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, out)
 
     return vecC, observed_features, score_points, score_features

@@ -43,7 +43,7 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
         default="thesis",
         metavar="NAME|TERMS",
         help="what a candidate's score is made of: thesis (the thesis's formula), or terms over it such as "
-        "surround=fill,background=0.5,shrink=16 (perch_warp/score_terms.py; default: thesis)",
+        "surround=fill,background=0.5,shrink=16 or shift=1 (perch_warp/score_terms.py; default: thesis)",
     )
     _add_search_method_arguments(g)
     _add_compute_arguments(g)

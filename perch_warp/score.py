@@ -93,6 +93,8 @@ class FeatureScorer:
             self.bias = self.vecC(*b.tolist())
             self._dummy_rgb = wp.zeros(1, dtype=wp.vec3)
             self._dummy_mask = wp.zeros(1, dtype=wp.uint8)
+            self.no_shift = shift_array(0, device)
+        self._shifts: dict[int, wp.array] = {}
         # Beyond the mask a window sees the photo, or the preprocessing mean (conv1's zero input);
         # "weighted": the photo, with the cosine weighted by the window's covered fraction.
         self.surround = Surround()
@@ -109,6 +111,14 @@ class FeatureScorer:
             tdev = wp.device_to_torch(device)
             self._t_weight = torch.from_numpy(np.ascontiguousarray(oihw)).to(tdev)
             self._t_bias = torch.from_numpy(b).to(tdev)
+
+    def shifts(self, radius: int) -> wp.array:
+        """shift_array(radius) on this scorer's device, made once per radius."""
+        if radius == 0:
+            return self.no_shift
+        if radius not in self._shifts:
+            self._shifts[radius] = shift_array(radius, self.device)
+        return self._shifts[radius]
 
     @contextlib.contextmanager
     def conv_settings(self):
@@ -164,16 +174,21 @@ class FeatureScorer:
         obs_feat: wp.array,
         obs_norm: wp.array,
         pw: PointWeights,
+        shifts: wp.array | None = None,
     ) -> tuple[wp.array, wp.array]:
         """similarity x gain - offset (pw: the photo's maps, `point_weights`) at every feature-grid
         point of each candidate's box and the flat
         offsets (B + 1,) int32 of each candidate's points, both device arrays (they stay there
-        for `top_alpha_mean_device`); off-mask points hold NOT_ON_MASK."""
+        for `top_alpha_mean_device`); off-mask points hold NOT_ON_MASK. With `shifts` (shift_array,
+        S of them; default: none) the values are S such blocks, block s comparing each point with the
+        photo's feature shifts[s] grid cells away (kernels/features.py)."""
         pts = point_layout(batch.box, gboxes, self.ks, self.stride, self.device)
         seen = batch.as_struct()
-        compare = [self.surround, obs_feat, obs_norm, pw]  # what every point is compared with, and how
+        shifts = self.no_shift if shifts is None else shifts
+        # what every point is compared with, and how
+        compare = [self.surround, obs_feat, obs_norm, pw, shifts]
         with wp.ScopedDevice(self.device):
-            out = wp.empty(pts.n_points, dtype=float)
+            out = wp.empty(pts.n_points * shifts.shape[0], dtype=float)
             if self.conv == "torch":
                 bufs = self._take_buffers()
                 try:
@@ -235,6 +250,30 @@ class FeatureScorer:
             return self._buffers.get_nowait()
         except queue.Empty:
             return {}
+
+
+def shift_array(radius: int, device: str) -> wp.array:
+    """The grid-cell displacements (dx, dy) with |dx|, |dy| <= radius, (0, 0) first, as kernel #2 takes
+    them (perch_warp.score_terms `shift`); radius 0 gives (0, 0) alone."""
+    r = range(-int(radius), int(radius) + 1)
+    d = sorted(((dx, dy) for dy in r for dx in r), key=lambda p: (p != (0, 0), p[1], p[0]))
+    return wp.array(np.array(d, np.int32).reshape(-1, 2), dtype=wp.vec2i, device=device)
+
+
+def shifted_offsets(pt_off: wp.array, n_shifts: int) -> wp.array:
+    """Offsets of kernel #2's S = n_shifts blocks of values as S x B candidates (block s, candidate c at
+    s B + c), so that `top_alpha_mean_device` reduces every (shift, candidate) pair in one launch."""
+    if n_shifts == 1:
+        return pt_off
+    off = pt_off.numpy().astype(np.int64)
+    n = int(off[-1])
+    blocks = [off[:-1] + s * n for s in range(n_shifts)]
+    return wp.array(np.concatenate([*blocks, [n_shifts * n]]).astype(np.int32), dtype=wp.int32, device=pt_off.device)
+
+
+def best_over_shifts(scores: np.ndarray, n_shifts: int) -> np.ndarray:
+    """(B,) the best of each candidate's S scores, scores being S blocks of B (shifted_offsets' order)."""
+    return np.asarray(scores).reshape(n_shifts, -1).max(axis=0)
 
 
 def point_weights(gain: wp.array, offset: wp.array | None = None) -> PointWeights:

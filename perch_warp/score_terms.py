@@ -24,11 +24,22 @@ Terms (each off in `thesis`):
   towards 0 (a size-aware statistic).
 - ``rarity``: ``max`` (thesis: 1 - count / max count; the commonest cluster weighs 0)
   or ``total`` (1 - count / all points); ``inits``: k-means initialisations (best of).
+- ``shift`` r: the grid stage's tolerance of a misaligned grid (issue 17 (g)). A grid pose
+  is up to half a step from the truth, and a small textured object's score peak is narrower
+  than that; so a grid candidate is scored against the photo displaced by every (dx, dy) of
+  feature-grid cells with |dx|, |dy| <= r, and its score is the best of those (2r + 1)^2
+  top-α means (the whole silhouette moves together: no point picks its own displacement).
+  Only the grid is scored so: the refinement below the grid compares undisplaced
+  (ScoringService.refining), so the answer's pose and score are the plain score's.
 
 The pruned search stays exact for every score: cos <= 1 and gain >= 0 give
 value <= gain - offset =: ceiling, pointwise on the silhouette, and the top-k sum is
 monotone in every value with the same k and the same positive divisor, so the
-top-α reduction of the ceiling bounds the score (perch_warp.bound).
+top-α reduction of the ceiling bounds the score (perch_warp.bound). With shift r, displacement
+d's value at point p is at most ceiling(p + d) (0 beyond the photo's grid, where the value is
+0), so at most the ceiling max-pooled over the (2r + 1)^2 cells around p (zero-padded, since
+ceiling >= 0): the top-α reduction of the pooled ceiling bounds every displacement's score,
+hence their maximum (Photo.ceiling_within).
 """
 
 from __future__ import annotations
@@ -42,6 +53,7 @@ from .errors import PerchError
 
 SURROUNDS = ("photo", "fill", "weighted")
 RARITY_MODES = ("max", "total")
+MAX_SHIFT = 3  # (2 r + 1)^2 = 49 comparisons per point at most
 
 
 @dataclass(frozen=True)
@@ -53,6 +65,7 @@ class ScoreTerms:
     shrink: float = 0.0
     rarity: str = "max"
     inits: int = 1
+    shift: int = 0
 
     def __post_init__(self) -> None:
         if self.surround not in SURROUNDS:
@@ -65,6 +78,8 @@ class ScoreTerms:
             raise PerchError(f"score term shrink must be >= 0, got {self.shrink}")
         if self.inits < 1:
             raise PerchError(f"score term inits must be >= 1, got {self.inits}")
+        if not 0 <= self.shift <= MAX_SHIFT:
+            raise PerchError(f"score term shift must be 0 to {MAX_SHIFT} feature-grid cells, got {self.shift}")
 
     def describe(self) -> str:
         """`key=value,...` of the terms that differ from the thesis's (empty for the thesis)."""

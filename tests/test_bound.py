@@ -207,6 +207,8 @@ def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(sce
         "shrink=12",
         "rarity=total,inits=2",
         "surround=fill,background=0.5,shrink=8",
+        "shift=1",
+        "shift=2,background=0.5,surround=weighted",
     ],
 )
 def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
@@ -222,10 +224,10 @@ def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
     assert np.min(out["bound"][live] - out["score"][live]) < 0.5
 
 
-def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights):
+@pytest.mark.parametrize("score", ["surround=fill,background=0.5,shrink=8", "shift=1,shrink=8"])
+def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights, score):
     """The pruned search stays exact when the score has every new term: the same top-k poses and scores."""
     space = _space(scene)
-    score = "surround=fill,background=0.5,shrink=8"
 
     def run(search):
         config = EngineConfig(score=score, search=search, batch_pixels=20000, cpu_threads=1, refine=False)

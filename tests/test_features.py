@@ -10,7 +10,17 @@ from perch_warp.kernels.features import NOT_ON_MASK
 from perch_warp.errors import PerchError
 from perch_warp.features import PREPROCESSING, FeatureWeights, load_npz
 from perch_warp.render import RenderedBatch
-from perch_warp.score import FeatureScorer, grid_boxes, grid_shape, point_weights
+from perch_warp.score import (
+    FeatureScorer,
+    best_over_shifts,
+    grid_boxes,
+    grid_shape,
+    point_weights,
+    shift_array,
+    shifted_offsets,
+    top_alpha_mean,
+    top_alpha_mean_device,
+)
 
 
 def _torch_features(image_u8: np.ndarray, w: FeatureWeights, stride: int) -> np.ndarray:
@@ -47,10 +57,23 @@ def test_caffe_preprocessing_is_rgb255_minus_mean(caffe_weights):
 
 
 def _numpy_scores(
-    img, rgb, mask, pix_off, boxes, gboxes, w: FeatureWeights, stride, rarity, offset=None, fill=False, weighted=False
+    img,
+    rgb,
+    mask,
+    pix_off,
+    boxes,
+    gboxes,
+    w: FeatureWeights,
+    stride,
+    rarity,
+    offset=None,
+    fill=False,
+    weighted=False,
+    shift=(0, 0),
 ):
     """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
-    in float64, cosine with the photo's feature, times rarity, minus offset."""
+    in float64, cosine with the photo's feature `shift` = (dx, dy) grid cells away, times rarity there,
+    minus offset there (0 where that cell is beyond the grid)."""
     offset = np.zeros_like(rarity) if offset is None else offset
     norm = (img.astype(np.float64) / 255.0 - np.array(w.mean)) / np.array(w.std)
     W = w.weight.astype(np.float64)
@@ -86,14 +109,82 @@ def _numpy_scores(
                     (1, 2, 3)
                 )
                 f += w.bias
-                fo = (W * norm[v - half : v + half + 1, u - half : u + half + 1].transpose(2, 0, 1)[None]).sum(
+                hx, hy = gx + shift[0], gy + shift[1]
+                if not (0 <= hx < rarity.shape[1] and 0 <= hy < rarity.shape[0]):
+                    out.append(0.0)
+                    continue
+                p, q = half + stride * hx, half + stride * hy
+                fo = (W * norm[q - half : q + half + 1, p - half : p + half + 1].transpose(2, 0, 1)[None]).sum(
                     (1, 2, 3)
                 )
                 fo += w.bias
                 share = full[v : v + 2 * half + 1, u : u + 2 * half + 1].mean() if weighted else 1.0
                 cos = f @ fo / (np.linalg.norm(f) * np.linalg.norm(fo))
-                out.append(cos * share * rarity[gy, gx] - offset[gy, gx])
+                out.append(cos * share * rarity[hy, hx] - offset[hy, hx])
     return np.array(out)
+
+
+def _random_batch(rng, H, W_, stride):
+    """A photo and five rendered boxes (two hanging over the image's edges) with random colours and masks."""
+    img = rng.integers(0, 256, (H, W_, 3), dtype=np.uint8)
+    boxes = np.array([[4, 6, 20, 15], [30, 0, 22, 40], [0, 25, 10, 15], [40, -9, 20, 18], [-7, 30, 15, 14]], np.int32)
+    sizes = boxes[:, 2] * boxes[:, 3]
+    pix_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
+    rgb = rng.random((pix_off[-1], 3)).astype(np.float32)
+    mask = (rng.random(pix_off[-1]) < 0.7).astype(np.uint8)
+    batch = RenderedBatch(
+        wp.array(rgb, dtype=wp.vec3, device=DEVICE),
+        wp.array(mask, dtype=wp.uint8, device=DEVICE),
+        wp.array(boxes, dtype=wp.vec4i, device=DEVICE),
+        wp.array(pix_off, dtype=wp.int32, device=DEVICE),
+        len(boxes),
+    )
+    return img, boxes, pix_off, rgb, mask, batch
+
+
+@pytest.mark.parametrize("conv", ["warp", "torch"])
+def test_shifted_scores_equal_numpy_reference(random_weights, conv):
+    """score_terms' shift: block s of kernel #2's values compares every point with the photo's feature
+    shifts[s] grid cells away (both conv forms), and the first block is the unshifted values."""
+    rng = np.random.default_rng(5)
+    H, W_, stride = 40, 52, 3
+    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, stride)
+    rows, cols = grid_shape(W_, H, 11, stride)
+    gboxes = grid_boxes(boxes, 11, stride)
+    rarity = rng.random((rows, cols)).astype(np.float32)
+    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv)
+    image = sc.image_to_device(img)
+    obs = sc.observed_features(image)
+    norms = wp.array(np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32), device=DEVICE)
+    pw = point_weights(wp.array(rarity, device=DEVICE))
+    shifts = shift_array(1, DEVICE)
+    assert sorted(map(tuple, shifts.numpy().tolist())) == [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
+    vals, pt_off = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts)
+    plain, _ = sc.score_points(image, batch, gboxes, obs, norms, pw)
+    n = int(pt_off.numpy()[-1])
+    got = vals.numpy().reshape(9, n)
+    assert np.array_equal(got[0], plain.numpy())  # (0, 0) first: the plain score's values
+    for s, d in enumerate(shifts.numpy().tolist()):
+        ref = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity, shift=tuple(d))
+        off = ref == NOT_ON_MASK
+        assert np.array_equal(got[s] == NOT_ON_MASK, off)
+        assert np.abs(got[s][~off] - ref[~off]).max() < 1e-4, d
+
+
+def test_best_over_shifts_reduces_each_shift_block_as_a_candidate():
+    """shifted_offsets + top_alpha_mean_device + best_over_shifts = max over s of the NumPy top-α mean."""
+    rng = np.random.default_rng(2)
+    counts = np.array([5, 0, 9, 3])
+    pt_off = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
+    S, n = 4, int(pt_off[-1])
+    vals = rng.random(S * n).astype(np.float32)
+    vals[rng.random(S * n) < 0.2] = NOT_ON_MASK
+    off = shifted_offsets(wp.array(pt_off, dtype=wp.int32, device=DEVICE), S)
+    scores, _ = top_alpha_mean_device(wp.array(vals, dtype=float, device=DEVICE), off, 0.5)
+    got = best_over_shifts(scores.numpy(), S)
+    ref = np.max([top_alpha_mean(vals[s * n : (s + 1) * n], pt_off, 0.5)[0] for s in range(S)], axis=0)
+    assert np.array_equal(np.isfinite(got), np.isfinite(ref))
+    assert np.allclose(got[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=0, atol=1e-12)
 
 
 @pytest.mark.parametrize("surround", ["photo", "fill", "weighted"])
@@ -103,13 +194,8 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround):
     (score_terms' background term) or none."""
     rng = np.random.default_rng(3)
     H, W_, stride = 40, 52, 3
-    img = rng.integers(0, 256, (H, W_, 3), dtype=np.uint8)
     # The last two boxes hang over the image's edges: their outside points count as 0.
-    boxes = np.array([[4, 6, 20, 15], [30, 0, 22, 40], [0, 25, 10, 15], [40, -9, 20, 18], [-7, 30, 15, 14]], np.int32)
-    sizes = boxes[:, 2] * boxes[:, 3]
-    pix_off = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int32)
-    rgb = rng.random((pix_off[-1], 3)).astype(np.float32)
-    mask = (rng.random(pix_off[-1]) < 0.7).astype(np.uint8)
+    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, stride)
     rows, cols = grid_shape(W_, H, 11, stride)
     gboxes = grid_boxes(boxes, 11, stride)
     rarity = rng.random((rows, cols)).astype(np.float32)
@@ -119,13 +205,6 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround):
     image = sc.image_to_device(img)
     obs = sc.observed_features(image)
     norms = np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32)
-    batch = RenderedBatch(
-        wp.array(rgb, dtype=wp.vec3, device=DEVICE),
-        wp.array(mask, dtype=wp.uint8, device=DEVICE),
-        wp.array(boxes, dtype=wp.vec4i, device=DEVICE),
-        wp.array(pix_off, dtype=wp.int32, device=DEVICE),
-        len(boxes),
-    )
     pw = point_weights(wp.array(rarity, device=DEVICE), None if offset is None else wp.array(offset, device=DEVICE))
     vals, pt_off = sc.score_points(image, batch, gboxes, obs, wp.array(norms, device=DEVICE), pw)
     got = vals.numpy()

@@ -93,3 +93,30 @@ def test_engine_refines_the_photographed_box_below_its_grid(scene, caffe_weights
     assert ref["rays"] > 0 and "refine" in fine.timings_s
     # The runners-up stay grid poses, below the refined best.
     assert all(c.score <= fine.score for c in fine.top_k[1:])
+
+
+def test_grid_shift_tolerance_scores_the_grid_and_not_the_refinement(scene, caffe_weights):
+    """score_terms' shift: on the grid every candidate scores at least the plain score (the undisplaced
+    comparison is one of the shifts) and at most its best displacement; the refinement below the grid
+    scores undisplaced, so the answer's score is the plain score of the answer's pose."""
+    gx, gy, _ = scene.truth_xy_yaw
+    cx, cy = round(gx / 0.01) * 0.01, round(gy / 0.01) * 0.01
+    space = SearchSpace((cx - 0.02, cx + 0.02), (cy - 0.02, cy + 0.02), 0.01, FULL_CIRCLE, math.radians(30))
+    args = (scene.image, scene.camera, scene.table, scene.resting)
+    poses = space.at(np.arange(len(space)))
+    plain = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(refine=False))
+    shifted = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(refine=False, score="shift=1"))
+    s0, s1 = plain.score(*args, *poses), shifted.score(*args, *poses)
+    live = np.isfinite(s0)
+    assert np.array_equal(live, np.isfinite(s1)) and live.sum() > 20
+    assert np.all(s1[live] >= s0[live]) and np.any(s1[live] > s0[live] + 1e-3)
+
+    cfg = EngineConfig(score="shift=1", refine_yaw_rad=math.radians(3.0))
+    fine = Engine(scene.mesh, caffe_weights, DEVICE, cfg).estimate(*args, space)
+    ref = fine.info.extra["refine"]
+    best = int(np.nanargmax(np.where(live, s1, -np.inf)))
+    assert (ref["from"]["x_m"], ref["from"]["y_m"]) == pytest.approx((poses[0][best], poses[1][best]), abs=1e-12)
+    assert ref["from"]["score"] == pytest.approx(s1[best], abs=1e-9)
+    again = plain.score(*args, np.array([fine.x_m]), np.array([fine.y_m]), np.array([fine.yaw_rad]))
+    assert fine.score == pytest.approx(float(again[0]), abs=1e-6)
+    assert abs(fine.x_m - gx) <= 0.004 and abs(fine.y_m - gy) <= 0.004

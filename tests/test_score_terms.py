@@ -14,6 +14,7 @@ def test_names_and_terms_parse():
     assert terms == ScoreTerms(surround="fill", shrink=16.0, background=0.5)
     assert name == "surround=fill,background=0.5,shrink=16.0"
     assert parse_score("shrink=0")[0] == "thesis"  # the thesis's terms, however written
+    assert parse_score("shift=1,shrink=8") == ("shrink=8.0,shift=1", ScoreTerms(shrink=8.0, shift=1))
     assert set(SCORES) >= {"thesis"}
 
 
@@ -28,6 +29,9 @@ def test_names_and_terms_parse():
         ("background=2", "background"),
         ("rarity=median", "rarity"),
         ("inits=0", "inits"),
+        ("shift=4", "shift"),
+        ("shift=-1", "shift"),
+        ("shift=0.5", "shift"),
     ],
 )
 def test_bad_terms_name_the_culprit(spec, culprit):

@@ -24,6 +24,7 @@ with full searches (`perch_warp eval`).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import sys
@@ -170,9 +171,8 @@ def rescore(args: argparse.Namespace) -> None:
                 meshes[tg.obj_id] = load_mesh(sel.model_paths[tg.obj_id])
                 points[tg.obj_id] = pose_error.subsample_points(np.asarray(meshes[tg.obj_id].vertices_m))
             if tg.obj_id not in engines:
-                cfg = EngineConfig(search="pruned", refine=False, score=spec)
-                engines[tg.obj_id] = Engine(meshes[tg.obj_id], weights, "cpu", cfg)
-            out.append(_rescore_target(engines[tg.obj_id], im, tg, row, tables, points[tg.obj_id], args))
+                engines[tg.obj_id] = _engines(meshes[tg.obj_id], weights, spec)
+            out.append(_rescore_target(*engines[tg.obj_id], im, tg, row, tables, points[tg.obj_id], args))
         results[spec] = out
         _print_score_line(spec, out, t0)
     report = summarise(results, args.score[0])
@@ -181,10 +181,23 @@ def rescore(args: argparse.Namespace) -> None:
         args.out.write_text(json.dumps({"pool": str(args.pool), "results": results, "summary": report}, indent=1))
 
 
-def _rescore_target(eng: Engine, im, tg, row: dict, tables, points: np.ndarray, args: argparse.Namespace) -> dict:
-    """One pooled target rescored by `eng`: the ADD-S (m) of the pose its score picks with every peak refined
-    and with only the grid's best refined, and the best scores of the truth's cell, its grid neighbours
-    and the pool (printed with --verbose)."""
+def _engines(mesh, weights, spec: str) -> tuple[Engine, Engine]:
+    """(grid engine, refining engine) of a score: the same, except that the refinement below the grid
+    scores without the grid's shift tolerance (perch_warp.score_terms `shift`), as a search does."""
+    cfg = EngineConfig(search="pruned", refine=False, score=spec)
+    grid = Engine(mesh, weights, "cpu", cfg)
+    if grid.terms.shift == 0:
+        return grid, grid
+    plain = dataclasses.replace(grid.terms, shift=0).describe() or "thesis"
+    return grid, Engine(mesh, weights, "cpu", dataclasses.replace(cfg, score=plain))
+
+
+def _rescore_target(
+    eng: Engine, fine_eng: Engine, im, tg, row: dict, tables, points: np.ndarray, args: argparse.Namespace
+) -> dict:
+    """One pooled target rescored by `eng` on the grid and `fine_eng` below it (_engines): the ADD-S (m) of
+    the pose its score picks with every peak refined and with only the grid's best refined, and the best
+    scores of the truth's cell, its grid neighbours and the pool (printed with --verbose)."""
     table, _ = tables.get(im)
     resting, *_ = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
     cell = _cell(row["gt"])
@@ -194,15 +207,21 @@ def _rescore_target(eng: Engine, im, tg, row: dict, tables, points: np.ndarray, 
     others = np.concatenate([pool, *peaks])
     grid_truth = _grid_neighbours(row["gt"])
     poses = np.concatenate([others, cell, grid_truth])
-    sc = eng.score(load_rgb(im.rgb), im.camera, table, resting, *poses.T)
+    image = load_rgb(im.rgb)
+    fine = fine_eng.score(image, im.camera, table, resting, *poses.T)
+    sc = fine
     n_o, n_c = len(others), len(cell)
+    if eng is not fine_eng:  # the grid's poses (pool, the truth's grid neighbours) under the grid's score
+        grid = np.flatnonzero(np.concatenate([_on_grid(others), np.zeros(n_c, bool), np.ones(len(grid_truth), bool)]))
+        sc = fine.copy()
+        sc[grid] = eng.score(image, im.camera, table, resting, *poses[grid].T)
 
     def adds(i: int) -> float:
         R, t = model_to_camera(table, resting, *poses[i : i + 1].T)
         return pose_error.adi(R[0], t[0], tg.R_gt, tg.t_gt_m, points)
 
     # "fine": the best peaks are all refined (truth's cell and the distractors' cells compete).
-    e = adds(int(np.argmax(sc[: n_o + n_c])))
+    e = adds(int(np.argmax(fine[: n_o + n_c])))
     # "grid": only the grid's best is refined: the truth competes with its grid neighbours only, and
     # wins refined (its cell's best) when one of them beats every grid pose of the distractors.
     on_grid = np.flatnonzero(_on_grid(others))

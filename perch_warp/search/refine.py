@@ -43,7 +43,7 @@ def refine(service: ScoringService, space: SearchSpace, top: list, grid_search: 
     x0, y0, yaw0, s0 = top[0]
     cell = cell_space(space, x0, y0, yaw0, cfg.refine_xy_m, cfg.refine_yaw_rad, cfg.refine_cells)
     search = cell_search(grid_search, service.device)
-    best, out = best_in(service.quiet(), cell, space.full_circle, search)
+    best, out = best_in(service.refining(), cell, space.full_circle, search)
     info = {
         "step_xy_m": cell.xy_step_m,
         "step_yaw_deg": math.degrees(cell.yaw_step_rad),
@@ -72,7 +72,7 @@ def probe(service: ScoringService, space: SearchSpace, pose: tuple[float, float,
     x, y, yaw = (float(v) for v in pose)
     cell = cell_space(everywhere, x, y, yaw, cfg.refine_xy_m, cfg.refine_yaw_rad, cfg.refine_cells)
     search = cell_search(grid_search, service.device)
-    (bx, by, byaw, score), _ = best_in(service.quiet(), cell, True, search)
+    (bx, by, byaw, score), _ = best_in(service.refining(), cell, True, search)
     return {"x_m": bx, "y_m": by, "yaw_rad": byaw, "score": score, "candidates": len(cell), "at": [x, y, yaw]}
 
 

@@ -29,7 +29,15 @@ from ..image import check_rgb
 from ..kernels.features import PointWeights
 from ..rarity import rarity_and_labels
 from ..render import MIN_DEPTH_M, BoxProjector, Renderer
-from ..score import FeatureScorer, grid_boxes, grid_shape, point_weights, top_alpha_mean_device
+from ..score import (
+    FeatureScorer,
+    best_over_shifts,
+    grid_boxes,
+    grid_shape,
+    point_weights,
+    shifted_offsets,
+    top_alpha_mean_device,
+)
 from ..score_terms import ScoreTerms, background_offset
 from ..search_space import SearchSpace
 from ..table import RestingPose, Table, model_to_camera
@@ -94,6 +102,21 @@ class Photo:
     ceiling: wp.array
     rows: int
     cols: int
+    pooled: dict = dataclasses.field(default_factory=dict)
+
+    def ceiling_within(self, radius: int) -> wp.array:
+        """The ceiling max-pooled over the (2 radius + 1)^2 grid cells around each cell, zero beyond
+        the grid: the bound of a score with that shift (perch_warp.score_terms); the ceiling itself for
+        radius 0. Made once per radius."""
+        if radius == 0:
+            return self.ceiling
+        if radius not in self.pooled:
+            c = np.pad(self.ceiling.numpy(), radius, constant_values=0.0)
+            n = 2 * radius + 1
+            windows = np.lib.stride_tricks.sliding_window_view(c, (n, n))
+            pooled = np.ascontiguousarray(windows.max(axis=(2, 3)), dtype=np.float32)
+            self.pooled[radius] = wp.array(pooled, dtype=float, device=self.ceiling.device)
+        return self.pooled[radius]
 
 
 @dataclass(frozen=True)
@@ -189,6 +212,11 @@ class ScoringService:
         """The same service without a progress bar, its stage seconds into `timings` (a new dict by default)."""
         return dataclasses.replace(self, timings={} if timings is None else timings, bar=None)
 
+    def refining(self) -> ScoringService:
+        """The quiet service that scores below the grid: the same score without the grid's shift
+        tolerance (perch_warp.score_terms `shift`), so a refined pose and its score are the plain score's."""
+        return dataclasses.replace(self.quiet(), terms=dataclasses.replace(self.terms, shift=0))
+
     @property
     def device(self) -> str:
         return self.backends.device
@@ -259,35 +287,44 @@ class ScoringService:
         """out[idx] = the scores of candidates idx of c (render, features, top-α), in batches."""
         sizes = c.boxes[idx, 2].astype(np.int64) * c.boxes[idx, 3]
         stats.rays += int(sizes.sum())
-        work = functools.partial(self._score_batch, c)
+        work = functools.partial(self._score_batch, c, self.backends.scorer.shifts(self.terms.shift))
         self._batched(work, idx, sizes, out, stats, self.bar if progress else None)
 
     def bound_some(self, c: Candidates, idx, out: np.ndarray, stats: SearchStats) -> None:
         """out[idx] = the silhouette bounds of candidates idx of c (perch_warp.bound), in batches."""
         sizes = c.gboxes[idx, 2].astype(np.int64) * c.gboxes[idx, 3]  # one ray per feature point
         stats.bound_rays += int(sizes.sum())
-        work = functools.partial(self._bound_batch, c)
+        # Pooled here, once, not by the batches' threads.
+        work = functools.partial(self._bound_batch, c, self.photo.ceiling_within(self.terms.shift))
         self._batched(work, idx, sizes, out, stats, None)
 
-    def _score_batch(self, c: Candidates, idx) -> tuple[np.ndarray, dict[str, float]]:
-        """Candidates `idx`: render (kernel #1) -> features x similarity x rarity (kernel #2) ->
-        top-α mean; their scores on the host and the seconds each stage took."""
+    def _score_batch(self, c: Candidates, shifts: wp.array, idx) -> tuple[np.ndarray, dict[str, float]]:
+        """Candidates `idx`: render (kernel #1) -> features x similarity x rarity (kernel #2, under each
+        of `shifts`) -> top-α mean (the best over shifts); their scores on the host and the seconds each
+        stage took."""
         laps: dict[str, float] = {}
         photo, scorer = self.photo, self.backends.scorer
         t = time.perf_counter()
         batch = self.renderer.render(self.camera, c.R[idx], c.tr[idx], c.boxes[idx])
         t = self.lap("render", t, laps)
-        vals, pt_off = scorer.score_points(photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights)
+        vals, pt_off = scorer.score_points(
+            photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights, shifts
+        )
         t = self.lap("features_score", t, laps)
         # The same kernel on every device, so CPU and GPU runs take the same path to a score.
-        batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha, self.terms.shrink)
+        n_shifts = shifts.shape[0]
+        batch_scores, _ = top_alpha_mean_device(
+            vals, shifted_offsets(pt_off, n_shifts), self.config.alpha, self.terms.shrink
+        )
         t = self.lap("reduction", t, laps)
-        out = batch_scores.numpy()  # one float per candidate, not every feature point
+        # One float per candidate (and shift) crosses to the host, not every feature point.
+        out = best_over_shifts(batch_scores.numpy(), n_shifts)
         self.lap("transfer", t, laps)
         return out, laps
 
-    def _bound_batch(self, c: Candidates, idx) -> tuple[np.ndarray, dict[str, float]]:
-        """Candidates `idx`: upper bounds of their scores from their silhouettes, and the seconds taken."""
+    def _bound_batch(self, c: Candidates, ceiling: wp.array, idx) -> tuple[np.ndarray, dict[str, float]]:
+        """Candidates `idx`: upper bounds of their scores from their silhouettes (`ceiling`: the photo's
+        ceiling map for this score, Photo.ceiling_within), and the seconds taken."""
         laps: dict[str, float] = {}
         t = time.perf_counter()
         cfg = self.config
@@ -298,7 +335,7 @@ class ScoringService:
             c.tr[idx],
             c.boxes[idx],
             c.gboxes[idx],
-            self.photo.ceiling,
+            ceiling,
             self.backends.weights.kernel_size,
             cfg.stride,
             cfg.alpha,
