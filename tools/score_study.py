@@ -5,6 +5,7 @@ then re-score them under every candidate score (issue 17's development protocol)
         [--coarse-xy 0.03] [--coarse-yaw 15] [--pool 100] [--image-scale 0.5] [--clip 1.0]
     python tools/score_study.py rescore POOL.npz --score thesis --score surround=fill,shrink=16 ...
         [--out STUDY.json]
+    python tools/score_study.py summary STUDY.json [--base SCORE]
 
 `collect` runs, per target (thesis protocol: height, roll and pitch from the ground truth), the
 exact (pruned) search of the default region on a coarse grid under the thesis's score and keeps
@@ -260,43 +261,60 @@ def _print_score_line(spec: str, out: list[dict], t0: float) -> None:
     )
 
 
+def _paired(x: np.ndarray, x0: np.ndarray, idx: np.ndarray) -> tuple[float, list[float]]:
+    """Mean of x - x0 over the targets and its 95 % paired bootstrap interval (resamples idx)."""
+    if not len(x):
+        return 0.0, [0.0, 0.0]
+    d = (x - x0)[idx].mean(1)
+    return float((x - x0).mean()), [float(np.percentile(d, 2.5)), float(np.percentile(d, 97.5))]
+
+
+def _metrics(e: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per target: the ADD-S AUC's term (100 max(0, 1 - e / 10 cm)) and 100 x (e < 2 cm)."""
+    return 100 * np.maximum(0, 1 - e / 0.1), 100.0 * (e < 0.02)
+
+
 def summarise(results: dict[str, list[dict]], base: str, n_boot: int = 2000, seed: int = 0) -> dict:
-    """Per score: AUC and < 2 cm with the paired bootstrap interval (95 %) of the difference to `base`."""
+    """Per score: AUC and < 2 cm with every peak refined and with the grid's best only, each with the
+    paired bootstrap interval (95 %, the same resamples of the targets) of the difference to `base`."""
     rng = np.random.default_rng(seed)
-    e0 = np.array([o["adds_m"] for o in results[base]])
-    n = len(e0)
+    n = len(results[base])
     idx = rng.integers(0, n, (n_boot, n)) if n else np.zeros((0, 0), int)
+    ref = {k: _metrics(np.array([o[k] for o in results[base]])) for k in ("adds_m", "adds_grid_m")}
     lines = [
         f"{'score':40s} {'n':>3s} {'AUC':>7s} {'dAUC [95% CI]':>22s} {'<2cm %':>7s} {'d<2cm [95% CI]':>22s}"
-        f" {'grid-only AUC':>13s} {'<2cm':>6s}"
+        f" {'grid-only AUC':>13s} {'dAUC [95% CI]':>22s} {'<2cm':>6s} {'d<2cm [95% CI]':>22s}"
     ]
     table = {}
     for spec, out in results.items():
-        e = np.array([o["adds_m"] for o in out])
-        a, a0 = 100 * np.maximum(0, 1 - e / 0.1), 100 * np.maximum(0, 1 - e0 / 0.1)
-        w, w0 = 100.0 * (e < 0.02), 100.0 * (e0 < 0.02)
-        da = (a - a0)[idx].mean(1) if n else np.zeros(1)
-        dw = (w - w0)[idx].mean(1) if n else np.zeros(1)
-        g = np.array([o["adds_grid_m"] for o in out])
-        row = {
-            "grid_only_auc": float(100 * np.maximum(0, 1 - g / 0.1).mean()) if n else float("nan"),
-            "grid_only_below_2cm": float(100 * (g < 0.02).mean()) if n else float("nan"),
-            "n": int(n),
-            "auc": float(a.mean()) if n else float("nan"),
-            "below_2cm": float(w.mean()) if n else float("nan"),
-            "d_auc": float((a - a0).mean()) if n else 0.0,
-            "d_auc_ci": [float(np.percentile(da, 2.5)), float(np.percentile(da, 97.5))],
-            "d_below_2cm": float((w - w0).mean()) if n else 0.0,
-            "d_below_2cm_ci": [float(np.percentile(dw, 2.5)), float(np.percentile(dw, 97.5))],
-        }
+        row: dict = {"n": int(n)}
+        for key, name in (("adds_m", ""), ("adds_grid_m", "grid_only_")):
+            (a, w), (a0, w0) = _metrics(np.array([o[key] for o in out])), ref[key]
+            row[f"{name}auc"] = float(a.mean()) if n else float("nan")
+            row[f"{name}below_2cm"] = float(w.mean()) if n else float("nan")
+            row[f"d_{name}auc"], row[f"d_{name}auc_ci"] = _paired(a, a0, idx)
+            row[f"d_{name}below_2cm"], row[f"d_{name}below_2cm_ci"] = _paired(w, w0, idx)
         table[spec] = row
-        lines.append(
-            f"{spec:40s} {n:3d} {row['auc']:7.2f} {row['d_auc']:+7.2f} [{row['d_auc_ci'][0]:+6.2f},"
-            f"{row['d_auc_ci'][1]:+6.2f}] {row['below_2cm']:7.2f} {row['d_below_2cm']:+7.2f} "
-            f"[{row['d_below_2cm_ci'][0]:+6.2f},{row['d_below_2cm_ci'][1]:+6.2f}]"
-            f" {row['grid_only_auc']:13.2f} {row['grid_only_below_2cm']:6.2f}"
-        )
+        cells = [f"{spec:40s} {n:3d}"]
+        for name, width in (("", 7), ("grid_only_", 13)):
+            cells.append(
+                f"{row[f'{name}auc']:{width}.2f} {row[f'd_{name}auc']:+7.2f} [{row[f'd_{name}auc_ci'][0]:+6.2f},"
+                f"{row[f'd_{name}auc_ci'][1]:+6.2f}] {row[f'{name}below_2cm']:{6 if name else 7}.2f} "
+                f"{row[f'd_{name}below_2cm']:+7.2f} [{row[f'd_{name}below_2cm_ci'][0]:+6.2f},"
+                f"{row[f'd_{name}below_2cm_ci'][1]:+6.2f}]"
+            )
+        lines.append(" ".join(cells))
     return {"base": base, "table": table, "text": "\n".join(lines)}
+
+
+def show(args: argparse.Namespace) -> None:
+    """The summary of a study written by `rescore --out`, again (against another base with --base)."""
+    study = json.loads(Path(args.study).read_text())
+    results = study["results"]
+    base = args.base or next(iter(results))
+    if base not in results:
+        raise PerchError(f"{args.study}: no score {base!r} in the study (it has {', '.join(results)})")
+    print(summarise(results, base)["text"])
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -322,9 +340,12 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--peaks", type=int, default=3, help="distinct far pool peaks refined like the truth (default 3)")
     r.add_argument("--verbose", action="store_true", help="a line per target")
     r.add_argument("--out", type=Path)
+    sh = sub.add_parser("summary", help="a study's summary again (rescore --out's file)")
+    sh.add_argument("study", type=Path)
+    sh.add_argument("--base", help="the score the others are paired against (default: the first)")
     args = p.parse_args(argv)
     try:
-        collect(args) if args.cmd == "collect" else rescore(args)
+        {"collect": collect, "rescore": rescore, "summary": show}[args.cmd](args)
     except PerchError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

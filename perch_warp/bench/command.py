@@ -236,6 +236,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         help="kernel #2's conv1: warp or torch (same values up to rounding); auto: torch on the CPU, warp on a GPU",
     )
     m.add_argument("--image-scale", type=float, default=1.0, help="search on the photo resized by this factor")
+    m.add_argument(
+        "--score", default="thesis", metavar="NAME|TERMS", help="the score, as the CLI's --score (default: thesis)"
+    )
     m.add_argument("--cpu-threads", type=int, default=None, help="CPU device: batches at once (default: one per core)")
     m.add_argument(
         "--refine",
@@ -295,6 +298,7 @@ def _settings(args: argparse.Namespace, dataset: Path, info: SearchInfo, config,
         "refine": args.refine,
         "refine_peaks": args.refine_peaks,
         "refine_yaws": args.refine_yaws,
+        "score": info.score,
         "renderer": info.renderer,
         "renderer_option": args.renderer,
         "cull_back_faces": info.cull_back_faces,
@@ -325,6 +329,7 @@ def run(args: argparse.Namespace) -> int:
         refine_yaws=args.refine_yaws,
         renderer=args.renderer,
         conv=args.conv,
+        score=args.score,
     )
     w = load_workload(dataset, args.scene, args.image, args.obj, args.clip, args.xy_step, args.yaw_step, args.split)
     weights = load_feature_weights(args.weights)
