@@ -93,6 +93,9 @@ class ScoreTerms:
 
 SCORES: dict[str, ScoreTerms] = {
     "thesis": ScoreTerms(),
+    # The thesis's formula, its grid stage tolerant of a misaligned grid by one feature cell (issue 17
+    # (g), chosen on the development set: docs/accuracy.md).
+    "grid-tolerant": ScoreTerms(shift=1),
 }
 
 

@@ -139,6 +139,7 @@ def test_bench_writes_the_promised_report(shared, caffe_weights, tmp_path, monke
     monkeypatch.setitem(sys.modules, "open3d", None)  # the peer must then be reported as skipped, not dropped
     args = ["bench", "--device", "cpu", "--clip", "0.04", "--xy-step", "0.02", "--yaw-step", "1.6", "--no-refine"]
     args += ["--image-scale", "0.25", "--ray-poses", "2", "--min-time", "0", "--out", str(tmp_path)]
+    args += ["--score", "shift=1"]
     assert main(args) == 0
     out = capsys.readouterr().out
     r = json.loads((tmp_path / "bench.json").read_text())
@@ -146,6 +147,7 @@ def test_bench_writes_the_promised_report(shared, caffe_weights, tmp_path, monke
     assert text.strip() in out
     for key in ("device", "device_name", "commit", "command", "settings", "search", "memory", "raycast", "setup_s"):
         assert key in r, key
+    assert r["settings"]["score"] == "shift=1"
     s = r["search"]
     # "bound": the pruned search's only; "refine": not with --no-refine
     assert set(bench.STAGES) - {"bound", "refine"} <= set(s["timings_s_mean"])
@@ -170,6 +172,7 @@ def test_bench_bad_options_are_one_line_errors(shared, tmp_path, capsys):
         (["--warmup", "-1"], "--warmup"),
         (["--obj", "99"], "object 99"),
         (["--clip", "-1"], "--clip"),
+        (["--score", "shift=9"], "shift"),
     ):
         assert main(["bench", "--device", "cpu", "--out", str(tmp_path), *extra]) == 1
         err = capsys.readouterr().err.strip().splitlines()

@@ -15,7 +15,8 @@ def test_names_and_terms_parse():
     assert name == "surround=fill,background=0.5,shrink=16.0"
     assert parse_score("shrink=0")[0] == "thesis"  # the thesis's terms, however written
     assert parse_score("shift=1,shrink=8") == ("shrink=8.0,shift=1", ScoreTerms(shrink=8.0, shift=1))
-    assert set(SCORES) >= {"thesis"}
+    assert set(SCORES) >= {"thesis", "grid-tolerant"}
+    assert parse_score("grid-tolerant") == ("grid-tolerant", ScoreTerms(shift=1))
 
 
 @pytest.mark.parametrize(
