@@ -40,10 +40,11 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--relu", action="store_true", help="apply AlexNet's ReLU after conv1 (default: raw conv1)")
     g.add_argument(
         "--score",
-        default="thesis",
+        default="grid-tolerant",
         metavar="NAME|TERMS",
-        help="what a candidate's score is made of: thesis (the thesis's formula), or terms over it such as "
-        "surround=fill,background=0.5,shrink=16 or shift=1 (perch_warp/score_terms.py; default: thesis)",
+        help="what a candidate's score is made of: grid-tolerant (the thesis's formula, its grid stage tolerant "
+        "of a one-cell misalignment), thesis (the thesis's formula exactly), or terms over the thesis's such as "
+        "surround=fill,background=0.5,shrink=16 (perch_warp/score_terms.py; default: grid-tolerant)",
     )
     _add_search_method_arguments(g)
     _add_compute_arguments(g)

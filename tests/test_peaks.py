@@ -86,8 +86,9 @@ def test_refined_peaks_win_over_the_grid_best_alone(scene, caffe_weights):
     peaks = many.info.extra["refine"]["peaks"]
     assert 1 <= len(peaks) <= 3 and many.score >= one.score - 1e-12
     assert many.score == max(p["score"] for p in peaks)
-    # Each peak's refined score is the best score of its cell, scored pose by pose.
-    e = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(**fine))
+    # Each peak's refined score is the best score of its cell, scored pose by pose, under the score the
+    # refinement uses: the default's without the grid's shift tolerance, i.e. the thesis's.
+    e = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(**{**fine, "score": "thesis"}))
     for p in peaks:
         f = p["from"]
         yaw = math.radians(f["yaw_deg"])
@@ -170,7 +171,9 @@ def test_refine_yaws_refines_each_yaw_peak_of_the_place(scene, caffe_weights):
     chosen = yaw_peaks(at_place, 3, True, first)
     assert [round(math.degrees(yaws[i]), 6) for i in chosen] == [round(v, 6) for v in peak["yaws_deg"]]
     best = -np.inf
+    # Below the grid: the default score without its grid shift, i.e. the thesis's.
+    plain = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(**{**fine, "score": "thesis"}))
     for i in chosen:
         cell = cell_space(space, f["x_m"], f["y_m"], float(yaws[i]), fine["refine_xy_m"], fine["refine_yaw_rad"])
-        best = max(best, e.score(scene.image, scene.camera, scene.table, scene.resting, *cell.candidates()).max())
+        best = max(best, plain.score(scene.image, scene.camera, scene.table, scene.resting, *cell.candidates()).max())
     assert abs(best - many.score) < 1e-9

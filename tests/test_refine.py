@@ -81,7 +81,8 @@ def test_engine_refines_the_photographed_box_below_its_grid(scene, caffe_weights
 
     # The independent reference: every pose of the cell scored by the exhaustive search.
     cell = cell_space(space, grid.x_m, grid.y_m, grid.yaw_rad, 0.002, math.radians(3.0))
-    ex_cfg = EngineConfig(search="exhaustive", refine=False, top_k=1)
+    # The refinement scores without the default score's grid shift: the thesis's score.
+    ex_cfg = EngineConfig(search="exhaustive", refine=False, top_k=1, score="thesis")
     ex = Engine(scene.mesh, caffe_weights, DEVICE, ex_cfg).estimate(
         scene.image, scene.camera, scene.table, scene.resting, cell
     )
@@ -104,7 +105,7 @@ def test_grid_shift_tolerance_scores_the_grid_and_not_the_refinement(scene, caff
     space = SearchSpace((cx - 0.02, cx + 0.02), (cy - 0.02, cy + 0.02), 0.01, FULL_CIRCLE, math.radians(30))
     args = (scene.image, scene.camera, scene.table, scene.resting)
     poses = space.at(np.arange(len(space)))
-    plain = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(refine=False))
+    plain = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(refine=False, score="thesis"))
     shifted = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(refine=False, score="shift=1"))
     s0, s1 = plain.score(*args, *poses), shifted.score(*args, *poses)
     live = np.isfinite(s0)
