@@ -210,10 +210,12 @@ def feature_kernels(C: int):
         return out
 
     @wp.func
-    def weighted_cosine(f: vecC, g: vecC, g_norm: float, pw: PointWeights, gx: int, gy: int, share: float) -> float:
-        """cos(f, g) x gain - offset at grid cell (gx, gy), the cosine weighted by share (1, or the window's
-        covered fraction); cos is 0 where either feature vanishes."""
-        denom = wp.length(f) * g_norm
+    def weighted_cosine(
+        f: vecC, f_norm: float, g: vecC, g_norm: float, pw: PointWeights, gx: int, gy: int, share: float
+    ) -> float:
+        """cos(f, g) x gain - offset at grid cell (gx, gy) (f_norm, g_norm: the features' lengths), the cosine
+        weighted by share (1, or the window's covered fraction); cos is 0 where either feature vanishes."""
+        denom = f_norm * g_norm
         cos = float(0.0)
         if denom > 1.0e-12:
             cos = wp.dot(f, g) / denom
@@ -238,12 +240,13 @@ def feature_kernels(C: int):
         """out[s n_points + i] = weighted_cosine of f with the photo's feature shifts[s] cells away from
         (gx, gy); 0 where that cell is beyond the photo's feature grid (as for an unshifted point there)."""
         grid = wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0])
+        f_norm = wp.length(f)  # the same for every shift
         for s in range(shifts.shape[0]):
             hx = gx + shifts[s][0]
             hy = gy + shifts[s][1]
             value = float(0.0)
             if in_box(grid, hx, hy):
-                value = weighted_cosine(f, obs_feat[hy, hx], obs_norm[hy, hx], pw, hx, hy, share)
+                value = weighted_cosine(f, f_norm, obs_feat[hy, hx], obs_norm[hy, hx], pw, hx, hy, share)
             out[s * n_points + i] = value
 
     @wp.func

@@ -1,7 +1,9 @@
 """The top-α mean on the device: one thread per candidate, so one float per candidate leaves it.
 
 Candidate c owns values[offsets[c]:offsets[c+1]] (kernel #2's feature-point scores);
-entries at or below NOT_ON_MASK / 2 are off its mask. Its score is the mean of the
+entries at or below NOT_ON_MASK / 2 are off its mask. The values may be several blocks laid out
+alike (kernel #2 under shifts: block s is values[s N : (s + 1) N], N = offsets[n_cand]); thread
+j = s n_cand + c reduces candidate c of block s. Its score is the mean of the
 top k = max(1, ceil(α n - 1e-9)) of its n on-mask values (perch_warp.score.alpha_count;
 perch_warp.score.top_alpha_mean is the NumPy reference), -inf when n = 0.
 
@@ -29,14 +31,17 @@ OFF_MASK_BELOW = NOT_ON_MASK / 2.0
 def top_alpha_mean(
     values: wp.array(dtype=wp.float32),
     offsets: wp.array(dtype=wp.int32),
+    n_cand: int,
     alpha: wp.float64,
     shrink: wp.float64,
     out_score: wp.array(dtype=wp.float64),
     out_n: wp.array(dtype=wp.int32),
 ):
-    c = wp.tid()
-    start = offsets[c]
-    end = offsets[c + 1]
+    j = wp.tid()
+    c = j % n_cand
+    base = (j // n_cand) * offsets[n_cand]
+    start = base + offsets[c]
+    end = base + offsets[c + 1]
     n = int(0)
     vmin = float(wp.inf)
     vmax = float(-wp.inf)
@@ -46,9 +51,9 @@ def top_alpha_mean(
             n += 1
             vmin = wp.min(vmin, v)
             vmax = wp.max(vmax, v)
-    out_n[c] = n
+    out_n[j] = n
     if n == 0:
-        out_score[c] = wp.float64(-wp.inf)
+        out_score[j] = wp.float64(-wp.inf)
         return
     # The same float64 formula as alpha_count, so k agrees with the host bit for bit.
     k = wp.max(1, int(wp.ceil(alpha * wp.float64(n) - wp.float64(1.0e-9))))
@@ -102,4 +107,4 @@ def top_alpha_mean(
         if v > OFF_MASK_BELOW and v > t:
             n_gt += 1
             total += wp.float64(v)
-    out_score[c] = (total + wp.float64(k - n_gt) * wp.float64(t)) / (wp.float64(k) + shrink)
+    out_score[j] = (total + wp.float64(k - n_gt) * wp.float64(t)) / (wp.float64(k) + shrink)

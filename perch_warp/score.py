@@ -93,8 +93,7 @@ class FeatureScorer:
             self.bias = self.vecC(*b.tolist())
             self._dummy_rgb = wp.zeros(1, dtype=wp.vec3)
             self._dummy_mask = wp.zeros(1, dtype=wp.uint8)
-            self.no_shift = shift_array(0, device)
-        self._shifts: dict[int, wp.array] = {}
+        self._shifts: dict[int, wp.array] = {0: shift_array(0, device)}
         # Beyond the mask a window sees the photo, or the preprocessing mean (conv1's zero input);
         # "weighted": the photo, with the cosine weighted by the window's covered fraction.
         self.surround = Surround()
@@ -114,8 +113,6 @@ class FeatureScorer:
 
     def shifts(self, radius: int) -> wp.array:
         """shift_array(radius) on this scorer's device, made once per radius."""
-        if radius == 0:
-            return self.no_shift
         if radius not in self._shifts:
             self._shifts[radius] = shift_array(radius, self.device)
         return self._shifts[radius]
@@ -184,7 +181,7 @@ class FeatureScorer:
         photo's feature shifts[s] grid cells away (kernels/features.py)."""
         pts = point_layout(batch.box, gboxes, self.ks, self.stride, self.device)
         seen = batch.as_struct()
-        shifts = self.no_shift if shifts is None else shifts
+        shifts = self.shifts(0) if shifts is None else shifts
         # what every point is compared with, and how
         compare = [self.surround, obs_feat, obs_norm, pw, shifts]
         with wp.ScopedDevice(self.device):
@@ -260,19 +257,9 @@ def shift_array(radius: int, device: str) -> wp.array:
     return wp.array(np.array(d, np.int32).reshape(-1, 2), dtype=wp.vec2i, device=device)
 
 
-def shifted_offsets(pt_off: wp.array, n_shifts: int) -> wp.array:
-    """Offsets of kernel #2's S = n_shifts blocks of values as S x B candidates (block s, candidate c at
-    s B + c), so that `top_alpha_mean_device` reduces every (shift, candidate) pair in one launch."""
-    if n_shifts == 1:
-        return pt_off
-    off = pt_off.numpy().astype(np.int64)
-    n = int(off[-1])
-    blocks = [off[:-1] + s * n for s in range(n_shifts)]
-    return wp.array(np.concatenate([*blocks, [n_shifts * n]]).astype(np.int32), dtype=wp.int32, device=pt_off.device)
-
-
 def best_over_shifts(scores: np.ndarray, n_shifts: int) -> np.ndarray:
-    """(B,) the best of each candidate's S scores, scores being S blocks of B (shifted_offsets' order)."""
+    """(B,) the best of each candidate's S scores, scores being S blocks of B (top_alpha_mean_device's
+    order with blocks = S)."""
     return np.asarray(scores).reshape(n_shifts, -1).max(axis=0)
 
 
@@ -321,19 +308,21 @@ def grid_boxes(boxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:
 
 
 def top_alpha_mean_device(
-    values: wp.array, offsets: wp.array, alpha: float, shrink: float = 0.0
+    values: wp.array, offsets: wp.array, alpha: float, shrink: float = 0.0, blocks: int = 1
 ) -> tuple[wp.array, wp.array]:
-    """`top_alpha_mean` on the values' device (kernels/reduce.py): scores (B,) float64 and n (B,) int32,
-    device arrays, so that one number per candidate crosses to the host instead of every point."""
+    """`top_alpha_mean` on the values' device (kernels/reduce.py): scores (S B,) float64 and n (S B,) int32,
+    device arrays, so that one number per candidate crosses to the host instead of every point. With
+    `blocks` S > 1 the values are S blocks laid out alike (kernel #2 under shifts), block s's candidate c
+    at s B + c."""
     n_cand = offsets.shape[0] - 1
     with wp.ScopedDevice(values.device):
-        scores = wp.empty(n_cand, dtype=wp.float64)
-        n = wp.empty(n_cand, dtype=wp.int32)
+        scores = wp.empty(blocks * n_cand, dtype=wp.float64)
+        n = wp.empty(blocks * n_cand, dtype=wp.int32)
         if n_cand > 0:
             wp.launch(
                 top_alpha_mean_kernel,
-                dim=n_cand,
-                inputs=[values, offsets, float(alpha), float(shrink)],
+                dim=blocks * n_cand,
+                inputs=[values, offsets, n_cand, float(alpha), float(shrink)],
                 outputs=[scores, n],
             )
     return scores, n

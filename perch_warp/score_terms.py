@@ -81,6 +81,10 @@ class ScoreTerms:
         if not 0 <= self.shift <= MAX_SHIFT:
             raise PerchError(f"score term shift must be 0 to {MAX_SHIFT} feature-grid cells, got {self.shift}")
 
+    def below_grid(self) -> ScoreTerms:
+        """The terms the refinement below the grid scores with: the same without the grid's shift."""
+        return dataclasses.replace(self, shift=0)
+
     def describe(self) -> str:
         """`key=value,...` of the terms that differ from the thesis's (empty for the thesis)."""
         base = ScoreTerms()

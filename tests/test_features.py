@@ -17,7 +17,6 @@ from perch_warp.score import (
     grid_shape,
     point_weights,
     shift_array,
-    shifted_offsets,
     top_alpha_mean,
     top_alpha_mean_device,
 )
@@ -172,15 +171,15 @@ def test_shifted_scores_equal_numpy_reference(random_weights, conv):
 
 
 def test_best_over_shifts_reduces_each_shift_block_as_a_candidate():
-    """shifted_offsets + top_alpha_mean_device + best_over_shifts = max over s of the NumPy top-α mean."""
+    """top_alpha_mean_device over S blocks + best_over_shifts = max over s of the NumPy top-α mean."""
     rng = np.random.default_rng(2)
     counts = np.array([5, 0, 9, 3])
     pt_off = np.concatenate([[0], np.cumsum(counts)]).astype(np.int32)
     S, n = 4, int(pt_off[-1])
     vals = rng.random(S * n).astype(np.float32)
     vals[rng.random(S * n) < 0.2] = NOT_ON_MASK
-    off = shifted_offsets(wp.array(pt_off, dtype=wp.int32, device=DEVICE), S)
-    scores, _ = top_alpha_mean_device(wp.array(vals, dtype=float, device=DEVICE), off, 0.5)
+    off = wp.array(pt_off, dtype=wp.int32, device=DEVICE)
+    scores, _ = top_alpha_mean_device(wp.array(vals, dtype=float, device=DEVICE), off, 0.5, blocks=S)
     got = best_over_shifts(scores.numpy(), S)
     ref = np.max([top_alpha_mean(vals[s * n : (s + 1) * n], pt_off, 0.5)[0] for s in range(S)], axis=0)
     assert np.array_equal(np.isfinite(got), np.isfinite(ref))

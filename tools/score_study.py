@@ -189,7 +189,7 @@ def _engines(mesh, weights, spec: str) -> tuple[Engine, Engine]:
     grid = Engine(mesh, weights, "cpu", cfg)
     if grid.terms.shift == 0:
         return grid, grid
-    plain = dataclasses.replace(grid.terms, shift=0).describe() or "thesis"
+    plain = grid.terms.below_grid().describe() or "thesis"
     return grid, Engine(mesh, weights, "cpu", dataclasses.replace(cfg, score=plain))
 
 

@@ -35,7 +35,6 @@ from ..score import (
     grid_boxes,
     grid_shape,
     point_weights,
-    shifted_offsets,
     top_alpha_mean_device,
 )
 from ..score_terms import ScoreTerms, background_offset
@@ -215,7 +214,7 @@ class ScoringService:
     def refining(self) -> ScoringService:
         """The quiet service that scores below the grid: the same score without the grid's shift
         tolerance (perch_warp.score_terms `shift`), so a refined pose and its score are the plain score's."""
-        return dataclasses.replace(self.quiet(), terms=dataclasses.replace(self.terms, shift=0))
+        return dataclasses.replace(self.quiet(), terms=self.terms.below_grid())
 
     @property
     def device(self) -> str:
@@ -313,9 +312,7 @@ class ScoringService:
         t = self.lap("features_score", t, laps)
         # The same kernel on every device, so CPU and GPU runs take the same path to a score.
         n_shifts = shifts.shape[0]
-        batch_scores, _ = top_alpha_mean_device(
-            vals, shifted_offsets(pt_off, n_shifts), self.config.alpha, self.terms.shrink
-        )
+        batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha, self.terms.shrink, n_shifts)
         t = self.lap("reduction", t, laps)
         # One float per candidate (and shift) crosses to the host, not every feature point.
         out = best_over_shifts(batch_scores.numpy(), n_shifts)
