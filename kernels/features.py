@@ -14,7 +14,10 @@ colour where the candidate's mask covers it and, elsewhere, the photo's colour
 the preprocessing mean, so that only the render counts; perch_warp.score_terms).
 
 A point's value is cos(R, I) * gain - offset, with the photo's per-point maps `PointWeights`
-(gain = rarity, offset = what the background alone earns; 0 for the thesis's score). With shifts
+(gain = rarity, offset = what the background alone earns; 0 for the thesis's score), plus, with the
+outline term (weight w > 0, perch_warp.outline), w * |e(b) . n| at a point of the candidate's outline:
+b the nearest pixel off its mask within one stride along the image axes, n the outward normal the mask
+gives there, e the photo's normalised intensity gradient at b. With shifts
 (the grid stage's tolerance, perch_warp.score_terms `shift`), a point is also compared with the
 photo's feature d = (dx, dy) grid cells away, for every d of `shifts`: value s of point i lands at
 out[s * n_points + i], so each shift's values are laid out like the unshifted ones.
@@ -119,6 +122,67 @@ def window_share(sur: Surround, mask: wp.array(dtype=wp.uint8), roff: int, rb: w
     return float(1.0)
 
 
+@wp.func
+def outline_at(mask: wp.array(dtype=wp.uint8), roff: int, rb: wp.vec4i, u: int, v: int, reach: int):
+    """Whether on-mask pixel (u, v) lies on the candidate's outline: some pixel off the mask within
+    `reach` pixels along +x, -x, +y or -y. Returns that, the nearest such pixel b (the first direction
+    in that order on a tie) and the outward normal (unnormalised): the sum of the directions that
+    leave the mask, each weighted by (reach + 1 - t) / reach for its first off pixel t away."""
+    nx = float(0.0)
+    ny = float(0.0)
+    best = reach + 1
+    bx = u
+    by = v
+    for k in range(4):
+        dx = int(0)
+        dy = int(0)
+        if k == 0:
+            dx = 1
+        elif k == 1:
+            dx = -1
+        elif k == 2:
+            dy = 1
+        else:
+            dy = -1
+        t = reach + 1
+        for step in range(1, reach + 1):
+            if t > reach:
+                if not on_mask(mask, roff, rb, u + step * dx, v + step * dy):
+                    t = step
+        if t <= reach:
+            wgt = float(reach + 1 - t) / float(reach)
+            nx += wgt * float(dx)
+            ny += wgt * float(dy)
+            if t < best:
+                best = t
+                bx = u + t * dx
+                by = v + t * dy
+    return best <= reach, bx, by, wp.vec2(nx, ny)
+
+
+@wp.func
+def outline_credit(edge: wp.array2d(dtype=wp.vec2), bx: int, by: int, normal: wp.vec2) -> float:
+    """|e(b) . n / |n||: the photo's normalised gradient at pixel b across the outline's normal; 0 where b
+    is beyond the photo or the normal vanishes (a part one or two pixels thin)."""
+    if not in_box(wp.vec4i(0, 0, edge.shape[1], edge.shape[0]), bx, by):
+        return 0.0
+    n = wp.length(normal)
+    if n < 1.0e-6:
+        return 0.0
+    return wp.abs(wp.dot(edge[by, bx], normal)) / n
+
+
+@wp.struct
+class Rim:
+    """A point's place on the candidate's outline (outline_at): on it (on 1), its nearest pixel off the
+    mask (bx, by) and the outward normal there."""
+
+    on: int
+    bx: int
+    by: int
+    normal: wp.vec2
+
+
 @wp.struct
 class PointWeights:
     """The photo's maps on its feature grid (rows, cols): a compared point scores
@@ -126,6 +190,28 @@ class PointWeights:
 
     gain: wp.array2d(dtype=float)
     offset: wp.array2d(dtype=float)
+    # The outline term: the photo's normalised intensity gradient per *pixel* (H, W), |edge| < 1, and
+    # its weight (0: off, the thesis's score; perch_warp.outline).
+    edge: wp.array2d(dtype=wp.vec2)
+    outline: float
+
+
+@wp.func
+def rim_of(
+    pw: PointWeights, mask: wp.array(dtype=wp.uint8), roff: int, rb: wp.vec4i, u: int, v: int, reach: int
+) -> Rim:
+    """Point (u, v)'s Rim when the outline term is on (pw.outline > 0); off the outline otherwise, so the
+    thesis's score does not walk the mask."""
+    r = Rim()
+    r.on = 0
+    if pw.outline > 0.0:
+        on, bx, by, normal = outline_at(mask, roff, rb, u, v, reach)
+        if on:
+            r.on = 1
+            r.bx = bx
+            r.by = by
+            r.normal = normal
+    return r
 
 
 @wp.func
@@ -235,10 +321,13 @@ def feature_kernels(C: int):
         shifts: wp.array(dtype=wp.vec2i),
         n_points: int,
         i: int,
+        rim: Rim,
+        stride: int,
         out: wp.array(dtype=float),
     ):
         """out[s n_points + i] = weighted_cosine of f with the photo's feature shifts[s] cells away from
-        (gx, gy); 0 where that cell is beyond the photo's feature grid (as for an unshifted point there)."""
+        (gx, gy), plus the outline term there (`rim`: rim_of's); 0 where that cell is beyond the photo's
+        feature grid (as for an unshifted point there)."""
         grid = wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0])
         f_norm = wp.length(f)  # the same for every shift
         for s in range(shifts.shape[0]):
@@ -247,6 +336,9 @@ def feature_kernels(C: int):
             value = float(0.0)
             if in_box(grid, hx, hy):
                 value = weighted_cosine(f, f_norm, obs_feat[hy, hx], obs_norm[hy, hx], pw, hx, hy, share)
+                if rim.on != 0:
+                    d = shifts[s] * stride  # the whole silhouette moves: its outline pixel with it
+                    value += pw.outline * outline_credit(pw.edge, rim.bx + d[0], rim.by + d[1], rim.normal)
             out[s * n_points + i] = value
 
     @wp.func
@@ -337,7 +429,8 @@ def feature_kernels(C: int):
         rb = seen.box[c]
         f = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, relu, sur)
         share = window_share(sur, seen.mask, roff, rb, u, v, pts.ks)
-        shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, out)
+        rim = rim_of(pw, seen.mask, roff, rb, u, v, pts.stride)
+        shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out)
 
     @wp.kernel(enable_backward=False, module="unique")
     def score_features(
@@ -368,6 +461,7 @@ def feature_kernels(C: int):
             f[ch] = feat[at + ch * n]
         f = rectified(f, relu)
         share = window_share(sur, seen.mask, seen.pix_off[c], seen.box[c], u, v, pts.ks)
-        shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, out)
+        rim = rim_of(pw, seen.mask, seen.pix_off[c], seen.box[c], u, v, pts.stride)
+        shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out)
 
     return vecC, observed_features, score_points, score_features

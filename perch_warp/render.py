@@ -103,7 +103,8 @@ class BoxProjector:
 
     def __init__(self, hull_m: np.ndarray, device: str):
         self.device = device
-        self.hull = wp.array(np.asarray(hull_m, dtype=np.float64), dtype=wp.vec3d, device=device)
+        self.hull_m = np.asarray(hull_m, dtype=np.float64)
+        self.hull = wp.array(self.hull_m, dtype=wp.vec3d, device=device)
 
     def __call__(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> np.ndarray:
         """Boxes (N, 4) int32, equal to project_boxes(camera, hull_m, R_m2c, t_m2c_m)."""

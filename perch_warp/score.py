@@ -263,11 +263,19 @@ def best_over_shifts(scores: np.ndarray, n_shifts: int) -> np.ndarray:
     return np.asarray(scores).reshape(n_shifts, -1).max(axis=0)
 
 
-def point_weights(gain: wp.array, offset: wp.array | None = None) -> PointWeights:
-    """The photo's per-point maps for kernel #2: gain (rarity) and offset (zeros when None), on gain's device."""
+def point_weights(
+    gain: wp.array, offset: wp.array | None = None, edge: wp.array | None = None, outline: float = 0.0
+) -> PointWeights:
+    """The photo's per-point maps for kernel #2, on gain's device: gain (rarity), offset (zeros when None),
+    and for the outline term its weight with the photo's normalised gradient per pixel (perch_warp.outline;
+    edge (H, W) vec2, needed when outline > 0)."""
+    if outline > 0.0 and edge is None:
+        raise PerchError("the outline term needs the photo's edge map")
     pw = PointWeights()
     pw.gain = gain
     pw.offset = offset if offset is not None else wp.zeros(gain.shape, dtype=float, device=gain.device)
+    pw.edge = edge if edge is not None else wp.zeros((1, 1), dtype=wp.vec2, device=gain.device)
+    pw.outline = float(outline)
     return pw
 
 

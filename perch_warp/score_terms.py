@@ -24,6 +24,15 @@ Terms (each off in `thesis`):
   towards 0 (a size-aware statistic).
 - ``rarity``: ``max`` (thesis: 1 - count / max count; the commonest cluster weighs 0)
   or ``total`` (1 - count / all points); ``inits``: k-means initialisations (best of).
+- ``outline`` w: the outline term (issue 17 (d), perch_warp.outline): a point on the
+  candidate's outline also earns w * |e . n|, the photo's normalised intensity gradient across
+  the rendered outline's normal, so a silhouette that follows the photo's edges gains over a
+  look-alike patch whose edges run elsewhere.
+- ``table`` w: the footing term (issue 17 (i), perch_warp.footing): w times how much the
+  table plane just in front of the candidate's footprint looks like the photo's commonest
+  appearance (the table), so a candidate standing on a wall, a monitor or another object's
+  top, where the table plane is hidden, loses to one standing on the table. It depends on the
+  place alone, so it is added to the bound as it is.
 - ``shift`` r: the grid stage's tolerance of a misaligned grid (issue 17 (g)). A grid pose
   is up to half a step from the truth, and a small textured object's score peak is narrower
   than that; so a grid candidate is scored against the photo displaced by every (dx, dy) of
@@ -33,13 +42,15 @@ Terms (each off in `thesis`):
   (ScoringService.refining), so the answer's pose and score are the plain score's.
 
 The pruned search stays exact for every score: cos <= 1 and gain >= 0 give
-value <= gain - offset =: ceiling, pointwise on the silhouette, and the top-k sum is
+value <= gain - offset (+ w * the largest |e| within one stride of the point with the outline
+term, perch_warp.outline) =: ceiling, pointwise on the silhouette, and the top-k sum is
 monotone in every value with the same k and the same positive divisor, so the
 top-α reduction of the ceiling bounds the score (perch_warp.bound). With shift r, displacement
 d's value at point p is at most ceiling(p + d) (0 beyond the photo's grid, where the value is
 0), so at most the ceiling max-pooled over the (2r + 1)^2 cells around p (zero-padded, since
 ceiling >= 0): the top-α reduction of the pooled ceiling bounds every displacement's score,
-hence their maximum (Photo.ceiling_within).
+hence their maximum (Photo.ceiling_within). The footing term (``table``) depends on the
+candidate's place alone and is added, the same, to its score and to its bound.
 """
 
 from __future__ import annotations
@@ -66,6 +77,8 @@ class ScoreTerms:
     rarity: str = "max"
     inits: int = 1
     shift: int = 0
+    outline: float = 0.0
+    table: float = 0.0
 
     def __post_init__(self) -> None:
         if self.surround not in SURROUNDS:
@@ -76,6 +89,10 @@ class ScoreTerms:
             raise PerchError(f"score term background must be in [0, 1], got {self.background}")
         if not (np.isfinite(self.shrink) and self.shrink >= 0.0):
             raise PerchError(f"score term shrink must be >= 0, got {self.shrink}")
+        if not (np.isfinite(self.outline) and 0.0 <= self.outline <= 1.0):
+            raise PerchError(f"score term outline must be in [0, 1], got {self.outline}")
+        if not (np.isfinite(self.table) and 0.0 <= self.table <= 1.0):
+            raise PerchError(f"score term table must be in [0, 1], got {self.table}")
         if self.inits < 1:
             raise PerchError(f"score term inits must be >= 1, got {self.inits}")
         if not 0 <= self.shift <= MAX_SHIFT:

@@ -5,10 +5,11 @@ import pytest
 import torch
 import warp as wp
 from _device import DEVICE
-from perch_warp.kernels.features import NOT_ON_MASK
 
 from perch_warp.errors import PerchError
 from perch_warp.features import PREPROCESSING, FeatureWeights, load_npz
+from perch_warp.kernels.features import NOT_ON_MASK
+from perch_warp.outline import edge_ceiling, edge_map
 from perch_warp.render import RenderedBatch
 from perch_warp.score import (
     FeatureScorer,
@@ -69,10 +70,15 @@ def _numpy_scores(
     fill=False,
     weighted=False,
     shift=(0, 0),
+    outline=0.0,
+    edge=None,
 ):
     """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
     in float64, cosine with the photo's feature `shift` = (dx, dy) grid cells away, times rarity there,
-    minus offset there (0 where that cell is beyond the grid)."""
+    minus offset there (0 where that cell is beyond the grid), plus with `outline` the outline term:
+    outline * |edge(b + shift * stride) . n / |n|| at a point with a pixel off the mask within `stride`
+    along +x, -x, +y, -y (b: the nearest, the first direction on a tie; n: the directions' sum weighted
+    by (stride + 1 - t) / stride)."""
     offset = np.zeros_like(rarity) if offset is None else offset
     norm = (img.astype(np.float64) / 255.0 - np.array(w.mean)) / np.array(w.std)
     W = w.weight.astype(np.float64)
@@ -119,8 +125,34 @@ def _numpy_scores(
                 fo += w.bias
                 share = full[v : v + 2 * half + 1, u : u + 2 * half + 1].mean() if weighted else 1.0
                 cos = f @ fo / (np.linalg.norm(f) * np.linalg.norm(fo))
-                out.append(cos * share * rarity[hy, hx] - offset[hy, hx])
+                value = cos * share * rarity[hy, hx] - offset[hy, hx]
+                if outline > 0:
+                    value += outline * _numpy_outline(cmask, x0, y0, u, v, stride, edge, shift)
+                out.append(value)
     return np.array(out)
+
+
+def _numpy_outline(cmask, x0, y0, u, v, reach, edge, shift):
+    """_numpy_scores' outline credit of on-mask pixel (u, v) (0 off the outline)."""
+
+    def on(x, y):
+        return 0 <= x - x0 < cmask.shape[1] and 0 <= y - y0 < cmask.shape[0] and bool(cmask[y - y0, x - x0])
+
+    n = np.zeros(2)
+    best = None
+    for d in ((1, 0), (-1, 0), (0, 1), (0, -1)):
+        t = next((k for k in range(1, reach + 1) if not on(u + k * d[0], v + k * d[1])), None)
+        if t is None:
+            continue
+        n += (reach + 1 - t) / reach * np.array(d, float)
+        if best is None or t < best[0]:
+            best = (t, u + t * d[0], v + t * d[1])
+    if best is None or np.linalg.norm(n) < 1e-6:
+        return 0.0
+    bx, by = best[1] + shift[0] * reach, best[2] + shift[1] * reach
+    if not (0 <= bx < edge.shape[1] and 0 <= by < edge.shape[0]):
+        return 0.0
+    return abs(edge[by, bx].astype(np.float64) @ n) / np.linalg.norm(n)
 
 
 def _random_batch(rng, H, W_, stride):
@@ -168,6 +200,72 @@ def test_shifted_scores_equal_numpy_reference(random_weights, conv):
         off = ref == NOT_ON_MASK
         assert np.array_equal(got[s] == NOT_ON_MASK, off)
         assert np.abs(got[s][~off] - ref[~off]).max() < 1e-4, d
+
+
+@pytest.mark.parametrize("conv", ["warp", "torch"])
+def test_outline_term_equals_numpy_reference(random_weights, conv):
+    """score_terms' outline: a point on the candidate's outline also earns w |e . n| from the photo's edge
+    map at its nearest off-mask pixel, under every shift (both conv forms); points off the outline and
+    w = 0 are unchanged."""
+    rng = np.random.default_rng(7)
+    H, W_, stride = 40, 52, 3
+    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, stride)
+    # Solid blobs, not noise: outlines with interiors, so that both kinds of point are exercised.
+    for c in range(len(boxes)):
+        bw, bh = int(boxes[c, 2]), int(boxes[c, 3])
+        yy, xx = np.mgrid[0:bh, 0:bw]
+        blob = ((xx - bw / 2) / (0.45 * bw)) ** 2 + ((yy - bh / 2) / (0.45 * bh)) ** 2 < 1
+        mask[pix_off[c] : pix_off[c + 1]] = blob.reshape(-1)
+    batch = RenderedBatch(batch.rgb, wp.array(mask, dtype=wp.uint8, device=DEVICE), batch.box, batch.pix_off, batch.n)
+    rows, cols = grid_shape(W_, H, 11, stride)
+    gboxes = grid_boxes(boxes, 11, stride)
+    rarity = rng.random((rows, cols)).astype(np.float32)
+    edge = edge_map(img)
+    assert np.linalg.norm(edge, axis=-1).max() < 1.0
+    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv)
+    image = sc.image_to_device(img)
+    obs = sc.observed_features(image)
+    norms = wp.array(np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32), device=DEVICE)
+    gain = wp.array(rarity, device=DEVICE)
+    w = 0.4
+    pw = point_weights(gain, None, wp.array(edge, dtype=wp.vec2, device=DEVICE), w)
+    shifts = shift_array(1, DEVICE)
+    vals, pt_off = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts)
+    plain, _ = sc.score_points(image, batch, gboxes, obs, norms, point_weights(gain))
+    n = int(pt_off.numpy()[-1])
+    got = vals.numpy().reshape(len(shifts.numpy()), n)
+    gained = 0
+    for s, d in enumerate(shifts.numpy().tolist()):
+        ref = _numpy_scores(
+            img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity, shift=tuple(d), outline=w, edge=edge
+        )
+        off = ref == NOT_ON_MASK
+        assert np.array_equal(got[s] == NOT_ON_MASK, off)
+        assert np.abs(got[s][~off] - ref[~off]).max() < 1e-4, d
+        if d == [0, 0]:
+            gained = int((got[s][~off] > plain.numpy()[~off] + 1e-6).sum())
+            assert np.all(got[s][~off] >= plain.numpy()[~off] - 1e-6)  # the term only adds
+    assert 10 < gained < int((~(plain.numpy() == NOT_ON_MASK)).sum())  # outline points gain, interior ones do not
+
+
+def test_edge_map_is_normalised_and_contrast_invariant():
+    """outline.edge_map: a vertical step edge gives a gradient along +x there, below 1 in length, the same
+    for a photo of half the contrast; a flat photo gives zeros; edge_ceiling bounds |e| within a stride."""
+    img = np.full((30, 40, 3), 40, np.uint8)
+    img[:, 20:] = 200
+    e = edge_map(img)
+    mag = np.linalg.norm(e, axis=-1)
+    assert mag.max() < 1.0 and mag[15, 19] > 0.5 and e[15, 19, 0] > 0 and abs(e[15, 19, 1]) < 1e-6
+    assert mag[15, 5] < 1e-3
+    half_contrast = (120 + (img.astype(int) - 120) // 2).astype(np.uint8)
+    assert np.allclose(edge_map(half_contrast), e, atol=1e-6)
+    assert not edge_map(np.full((20, 20, 3), 90, np.uint8)).any()
+    rows, cols = grid_shape(40, 30, 11, 3)
+    ceil = edge_ceiling(e, rows, cols, 11, 3)
+    for gy in range(rows):
+        for gx in range(cols):
+            u, v = 5 + 3 * gx, 5 + 3 * gy
+            assert ceil[gy, gx] >= mag[max(0, v - 3) : v + 4, max(0, u - 3) : u + 4].max()
 
 
 def test_best_over_shifts_reduces_each_shift_block_as_a_candidate():

@@ -17,6 +17,7 @@ def test_names_and_terms_parse():
     assert parse_score("shift=1,shrink=8") == ("shrink=8.0,shift=1", ScoreTerms(shrink=8.0, shift=1))
     assert set(SCORES) >= {"thesis", "grid-tolerant"}
     assert parse_score("grid-tolerant") == ("grid-tolerant", ScoreTerms(shift=1))
+    assert parse_score("shift=1,outline=0.25") == ("shift=1,outline=0.25", ScoreTerms(shift=1, outline=0.25))
 
 
 @pytest.mark.parametrize(
@@ -33,6 +34,10 @@ def test_names_and_terms_parse():
         ("shift=4", "shift"),
         ("shift=-1", "shift"),
         ("shift=0.5", "shift"),
+        ("outline=1.5", "outline"),
+        ("outline=-0.1", "outline"),
+        ("outline=nan", "outline"),
+        ("table=2", "table"),
     ],
 )
 def test_bad_terms_name_the_culprit(spec, culprit):

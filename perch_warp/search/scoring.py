@@ -25,8 +25,10 @@ from ..bound import silhouette_bounds
 from ..camera import Camera
 from ..errors import PerchError
 from ..features import FeatureWeights
+from ..footing import footing, footprint_radius_m, likeness_map
 from ..image import check_rgb
 from ..kernels.features import PointWeights
+from ..outline import edge_ceiling, edge_map
 from ..rarity import rarity_and_labels
 from ..render import MIN_DEPTH_M, BoxProjector, Renderer
 from ..score import (
@@ -79,13 +81,15 @@ class PoseSource:
 
 class Candidates(NamedTuple):
     """Candidates set up for scoring: model-to-camera R (N, 3, 3), t (N, 3) metres, pixel boxes,
-    feature-grid boxes, and the indices of those showing at least one feature point."""
+    feature-grid boxes, the indices of those showing at least one feature point, and what each one's
+    place alone adds to its score and bound (the footing term, perch_warp.footing; None without it)."""
 
     R: np.ndarray
     tr: np.ndarray
     boxes: np.ndarray
     gboxes: np.ndarray
     live: np.ndarray
+    prior: np.ndarray | None = None
 
 
 @dataclass
@@ -102,6 +106,7 @@ class Photo:
     rows: int
     cols: int
     pooled: dict = dataclasses.field(default_factory=dict)
+    likeness: np.ndarray | None = None  # (rows, cols) on the host: the footing term's map (perch_warp.footing)
 
     def ceiling_within(self, radius: int) -> wp.array:
         """The ceiling max-pooled over the (2 radius + 1)^2 grid cells around each cell, zero beyond
@@ -174,13 +179,25 @@ def photo_on_device(backends: Backends, config, terms: ScoreTerms, image_rgb, ca
     rar, labels = rarity_and_labels(feats, config.clusters, config.seed, terms.rarity, terms.inits)
     offset = background_offset(feats, labels, rar, terms.background)
     ceiling = (rar - offset).reshape(rows, cols)
+    edge = None
+    if terms.outline > 0.0:  # the outline term (perch_warp.outline): its edge map and its share of the ceiling
+        edge = edge_map(image_rgb)
+        ceiling = ceiling + terms.outline * edge_ceiling(edge, rows, cols, ks, config.stride)
     norms = np.linalg.norm(feats.astype(np.float64), axis=1).reshape(rows, cols).astype(np.float32)
     with wp.ScopedDevice(backends.device):
         gain = wp.array(rar.reshape(rows, cols), dtype=float)
-        pw = point_weights(gain, wp.array(offset.reshape(rows, cols), dtype=float))
+        pw = point_weights(
+            gain,
+            wp.array(offset.reshape(rows, cols), dtype=float),
+            None if edge is None else wp.array(edge, dtype=wp.vec2),
+            terms.outline,
+        )
         # The thesis's ceiling is the rarity itself: the same array, so its bounds stay bit for bit.
-        ceil = gain if terms.background == 0.0 else wp.array(ceiling, dtype=float)
+        plain = terms.background == 0.0 and terms.outline == 0.0
+        ceil = gain if plain else wp.array(ceiling.astype(np.float32), dtype=float)
         photo = Photo(image, obs, wp.array(norms, dtype=float), pw, ceil, rows, cols)
+    if terms.table > 0.0:
+        photo.likeness = likeness_map(feats, labels, rows, cols)
     lap(backends.device, timings, "rarity", t)
     return photo
 
@@ -275,8 +292,14 @@ class ScoringService:
         live = np.flatnonzero(gboxes[:, 2] * gboxes[:, 3] > 0)
         if self.table.extent_m is not None:  # off the table top: no object rests there, never scored
             live = live[self.table.contains(np.asarray(x)[live], np.asarray(y)[live])]
+        prior = None
+        if self.terms.table > 0.0:
+            radius = footprint_radius_m(self.backends.boxes.hull_m, self.resting)
+            ks, stride = self.backends.weights.kernel_size, self.config.stride
+            where = footing(self.table, self.camera, self.photo.likeness, x, y, radius, ks, stride)
+            prior = self.terms.table * np.broadcast_to(where, (len(R),))
         self.lap("candidates", t)
-        return Candidates(R, tr, boxes, gboxes, live)
+        return Candidates(R, tr, boxes, gboxes, live, prior)
 
     def setup(self, poses: PoseSource, idx: np.ndarray) -> Candidates:
         """candidates() of candidates idx of poses (a chunk: the arrays are idx's, in its order)."""
@@ -288,6 +311,8 @@ class ScoringService:
         stats.rays += int(sizes.sum())
         work = functools.partial(self._score_batch, c, self.backends.scorer.shifts(self.terms.shift))
         self._batched(work, idx, sizes, out, stats, self.bar if progress else None)
+        if c.prior is not None:
+            out[idx] += c.prior[idx]
 
     def bound_some(self, c: Candidates, idx, out: np.ndarray, stats: SearchStats) -> None:
         """out[idx] = the silhouette bounds of candidates idx of c (perch_warp.bound), in batches."""
@@ -296,6 +321,8 @@ class ScoringService:
         # Pooled here, once, not by the batches' threads.
         work = functools.partial(self._bound_batch, c, self.photo.ceiling_within(self.terms.shift))
         self._batched(work, idx, sizes, out, stats, None)
+        if c.prior is not None:  # the place's own term, exactly: the bound stays as tight
+            out[idx] += c.prior[idx]
 
     def _score_batch(self, c: Candidates, shifts: wp.array, idx) -> tuple[np.ndarray, dict[str, float]]:
         """Candidates `idx`: render (kernel #1) -> features x similarity x rarity (kernel #2, under each
