@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import warp as wp
 from _device import DEVICE
+from perch_warp.kernels.features import NOT_ON_MASK
 
 from perch_warp.bound import BOUND_SLACK, next_to_score, silhouette_bounds, silhouette_points
 from perch_warp.demo import demo_scene
 from perch_warp.engine import Engine, EngineConfig
-from perch_warp.kernels.features import NOT_ON_MASK
 from perch_warp.score import FeatureScorer, grid_boxes, grid_shape, top_alpha_mean
 from perch_warp.score_terms import parse_score
 from perch_warp.search_space import SearchSpace

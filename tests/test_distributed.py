@@ -77,6 +77,7 @@ def test_ray_missing_says_how_to_install_in_one_line(tmp_path, monkeypatch, caps
     assert err.count("\n") == 0 and "pip install -e '.[ray]'" in err
 
 
+
 def test_ray_with_stable_rests_is_refused_in_one_line_before_any_work(tmp_path, capsys):
     pytest.importorskip("ray")
     from perch_warp.cli import main
@@ -87,7 +88,6 @@ def test_ray_with_stable_rests_is_refused_in_one_line_before_any_work(tmp_path, 
     assert main(["eval", "--dataset", str(root), "--out", str(out), "--ray", "--rest", "stable"]) == 1
     err = capsys.readouterr().err.strip()
     assert err.count("\n") == 0 and "--ray runs --rest truth only" in err and not out.exists()
-
 
 def test_worker_plan_follows_the_cluster():
     assert cluster.plan_workers({"CPU": 2.0}, None) == cluster.WorkerPlan(2, 1, 0, "cpu")

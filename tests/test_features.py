@@ -5,10 +5,10 @@ import pytest
 import torch
 import warp as wp
 from _device import DEVICE
+from perch_warp.kernels.features import NOT_ON_MASK
 
 from perch_warp.errors import PerchError
 from perch_warp.features import PREPROCESSING, FeatureWeights, load_npz
-from perch_warp.kernels.features import NOT_ON_MASK
 from perch_warp.outline import edge_ceiling, edge_map
 from perch_warp.render import RenderedBatch
 from perch_warp.score import (

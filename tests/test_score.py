@@ -4,8 +4,8 @@ import numpy as np
 import pytest
 import warp as wp
 from _device import DEVICE
-
 from perch_warp.kernels.features import NOT_ON_MASK
+
 from perch_warp.score import alpha_count, top_alpha_mean, top_alpha_mean_device
 
 

@@ -22,6 +22,7 @@ from pathlib import Path
 
 import numpy as np
 import warp as wp
+from perch_warp.kernels.features import NOT_ON_MASK
 
 from perch_warp.bench import (
     add_frame_arguments,
@@ -35,7 +36,6 @@ from perch_warp.bench import (
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
 from perch_warp.features import load_feature_weights
-from perch_warp.kernels.features import NOT_ON_MASK
 from perch_warp.score import grid_boxes
 
 

@@ -97,9 +97,8 @@ def kernel_modules() -> list[str]:
     (found, so a new one is not missed) and OTHER_KERNEL_MODULES."""
     import pkgutil
 
-    import warp as wp
-
     import perch_warp.kernels
+    import warp as wp
 
     names = []
     for info in pkgutil.iter_modules(perch_warp.kernels.__path__):
@@ -113,7 +112,6 @@ def compile_cubins(arch: int, channels: int, module_dir: Path) -> list[tuple[str
     """(module name, cubin) for every kernel module the engine launches, and the feature kernels
     built for `channels` (each in a module of its own)."""
     import warp as wp
-
     from perch_warp.kernels.features import feature_kernels
 
     out = []

@@ -29,6 +29,7 @@ from pathlib import Path
 
 import numpy as np
 import warp as wp
+from perch_warp.kernels.render import PixelRays, box_pixel, pixel_ray_m
 
 from perch_warp.bench import (
     add_frame_arguments,
@@ -40,7 +41,6 @@ from perch_warp.bench import (
     search_camera,
 )
 from perch_warp.features import caffe_weights_path
-from perch_warp.kernels.render import PixelRays, box_pixel, pixel_ray_m
 from perch_warp.mesh import ObjectMesh
 from perch_warp.render import BvhRenderer, DeviceMesh, RasterRenderer, flat_offsets, project_boxes
 
