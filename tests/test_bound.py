@@ -33,8 +33,8 @@ def _space(scene, half=0.15, step=0.03, yaw_step_deg=30.0):
 def _candidates(engine, scene, space, camera):
     """Poses, boxes and live candidates as the engine makes them, plus the photo's arrays."""
     service = engine.scoring(scene.image, camera, scene.table, scene.resting)
-    R, t, boxes, gboxes, live = service.candidates(*space.candidates())
-    return service.photo, R[live], t[live], boxes[live], gboxes[live]
+    c = service.candidates(*space.candidates())
+    return service.photo, c.R[c.live], c.tr[c.live], c.boxes[c.live], c.gboxes[c.live]
 
 
 RENDERERS = pytest.mark.parametrize("renderer", ["bvh", "raster"])
