@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from .camera import Camera
+from .score_terms import likeness_to_commonest
 from .table import RestingPose, Table
 
 FRONT_ARC_DEG = 120.0
@@ -41,12 +42,8 @@ def footprint_radius_m(hull_m: np.ndarray, resting: RestingPose) -> float:
 
 def likeness_map(features: np.ndarray, labels: np.ndarray, rows: int, cols: int) -> np.ndarray:
     """(rows, cols) float32: max(0, cos(I, B)) per feature cell, I the photo's features (rows * cols, C),
-    B the centroid of the largest cluster of `labels` (rows * cols,)."""
-    f = np.asarray(features, np.float64)
-    B = f[labels == int(np.argmax(np.bincount(labels)))].mean(axis=0)
-    norms = np.linalg.norm(f, axis=1) * np.linalg.norm(B)
-    cos = np.divide(f @ B, norms, out=np.zeros(len(f)), where=norms > 1e-12)
-    return np.maximum(cos, 0.0).reshape(rows, cols).astype(np.float32)
+    B the centroid of the largest cluster of `labels` (rows * cols,) (score_terms.likeness_to_commonest)."""
+    return likeness_to_commonest(features, labels).reshape(rows, cols).astype(np.float32)
 
 
 def footing(

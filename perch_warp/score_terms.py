@@ -145,14 +145,19 @@ def parse_score(spec: str) -> tuple[str, ScoreTerms]:
     return terms.describe() or "thesis", terms
 
 
-def background_offset(features: np.ndarray, labels: np.ndarray, gain: np.ndarray, weight: float) -> np.ndarray:
-    """offset (N,) = weight * gain * max(0, cos(B, I)) for the photo's features I (N, C), with B the
-    centroid of the largest cluster of labels (N,); zeros when weight is 0."""
-    if weight == 0.0:
-        return np.zeros(len(features), np.float32)
+def likeness_to_commonest(features: np.ndarray, labels: np.ndarray) -> np.ndarray:
+    """(N,) float64 max(0, cos(B, I)) for the photo's features I (N, C), with B the centroid of the
+    largest cluster of labels (N,): how much each point looks like the photo's commonest appearance
+    (usually the table). The background term's offset and the footing term (perch_warp.footing) read it."""
     f = np.asarray(features, np.float64)
-    counts = np.bincount(labels)
-    B = f[labels == int(np.argmax(counts))].mean(axis=0)
+    B = f[labels == int(np.argmax(np.bincount(labels)))].mean(axis=0)
     norms = np.linalg.norm(f, axis=1) * np.linalg.norm(B)
     cos = np.divide(f @ B, norms, out=np.zeros(len(f)), where=norms > 1e-12)
-    return (weight * np.asarray(gain, np.float64) * np.maximum(cos, 0.0)).astype(np.float32)
+    return np.maximum(cos, 0.0)
+
+
+def background_offset(features: np.ndarray, labels: np.ndarray, gain: np.ndarray, weight: float) -> np.ndarray:
+    """offset (N,) = weight * gain * likeness_to_commonest(features, labels); zeros when weight is 0."""
+    if weight == 0.0:
+        return np.zeros(len(features), np.float32)
+    return (weight * np.asarray(gain, np.float64) * likeness_to_commonest(features, labels)).astype(np.float32)
