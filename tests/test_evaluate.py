@@ -499,3 +499,39 @@ def test_confidence_columns_summary_and_worst_heat_maps(tmp_path):
     assert "Confidence (margin" in (tmp_path / "out" / "table.txt").read_text()
     assert len(list((tmp_path / "out" / "heatmaps").glob("*.npz"))) == 5
     assert "worst_heatmaps.png" in s["outputs"] and (tmp_path / "out" / "worst_heatmaps.png").stat().st_size > 0
+
+
+def test_target_shares_average_to_the_pooled_figures():
+    from perch_warp import pose_error
+    from perch_warp.eval.metrics import target_shares
+
+    rng = np.random.default_rng(3)
+    adds = list(rng.uniform(0.0, 0.15, 40)) + [np.inf, None, np.nan]
+    add = [None if e is None else e * 1.5 for e in adds]
+    te = list(rng.uniform(0.0, 0.03, 43))
+    s = target_shares(adds, add, te)
+    assert s["auc"].mean() == pytest.approx(pose_error.auc(adds, 0.1), abs=1e-9)
+    assert s["adds_below_2cm_pct"].mean() == pytest.approx(pose_error.accuracy_below(adds, 0.02))
+    assert s["auc_add"].mean() == pytest.approx(pose_error.auc(add, 0.1), abs=1e-9)
+    assert s["te_below_1cm_pct"].mean() == pytest.approx(pose_error.accuracy_below(te, 0.01))
+    assert all(v[-3:].sum() == 0 for k, v in s.items() if k != "te_below_1cm_pct")  # failures share nothing
+
+
+def test_mean_interval_against_hand_computed_cases():
+    from perch_warp.eval.metrics import mean_interval
+
+    assert mean_interval(np.full(7, 42.0)) == (42.0, 42.0)
+    # Two targets, 0 and 100: a resample's mean is 0, 50 or 100 with chances 1/4, 1/2, 1/4.
+    assert mean_interval(np.array([0.0, 100.0])) == (0.0, 100.0)
+    # 50 right of 100: the mean's standard error is 5 points, so the interval is about 50 -/+ 9.8.
+    lo, hi = mean_interval(np.repeat([0.0, 100.0], 50))
+    assert lo == pytest.approx(40.2, abs=1.5) and hi == pytest.approx(59.8, abs=1.5)
+    assert mean_interval(np.arange(9.0)) == mean_interval(np.arange(9.0))  # seeded
+
+
+def test_summary_gives_intervals_around_the_pooled_figures(tmp_path):
+    s = run_eval(write_tiny_dataset(tmp_path / "ds"), tmp_path / "out", FakeEstimator())
+    for k in ("auc", "adds_below_2cm_pct", "auc_add", "te_below_1cm_pct"):
+        lo, hi = s["pooled_ci95"][k]
+        assert lo <= s["pooled"][k] + 1e-9 and s["pooled"][k] <= hi + 1e-9
+    assert "95 % bootstrap intervals" in (tmp_path / "out" / "table.txt").read_text()
