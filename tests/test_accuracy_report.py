@@ -1,31 +1,20 @@
 """tools/accuracy_report.py: the four accuracy figures of an eval run with intervals, and paired differences."""
 
-import csv
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+from _tools import eval_run, load_tool
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "accuracy_report.py"
 COLS = ["scene_id", "im_id", "inst", "obj_id", "adds_mm", "add_mm", "te_mm"]
 
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("accuracy_report", TOOL)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("accuracy_report")
 
 
-def _run(folder: Path, rows: list[tuple]) -> Path:
-    folder.mkdir()
-    with (folder / "per_target.csv").open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(COLS)
-        w.writerows(rows)
-    return folder
+def _run(folder, rows: list[tuple]):
+    return eval_run(folder, COLS, rows)
 
 
 def test_figures_and_paired_differences_by_hand(tool, tmp_path, capsys):

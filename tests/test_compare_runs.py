@@ -1,12 +1,8 @@
 """tools/compare_runs.py pairs targets of two eval runs and counts equal poses."""
 
-import csv
-import importlib.util
-from pathlib import Path
-
 import pytest
+from _tools import eval_run, load_tool
 
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "compare_runs.py"
 COLS = [
     "scene_id",
     "im_id",
@@ -24,19 +20,11 @@ COLS = [
 
 @pytest.fixture(scope="module")
 def tool():
-    spec = importlib.util.spec_from_file_location("compare_runs", TOOL)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_tool("compare_runs")
 
 
-def _run(folder: Path, rows: list[tuple]) -> Path:
-    folder.mkdir()
-    with (folder / "per_target.csv").open("w", newline="") as f:
-        w = csv.writer(f)
-        w.writerow(COLS)
-        w.writerows(rows)
-    return folder
+def _run(folder, rows: list[tuple]):
+    return eval_run(folder, COLS, rows)
 
 
 def test_counts_same_poses_and_who_scores_higher(tool, tmp_path, capsys):

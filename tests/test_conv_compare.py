@@ -1,19 +1,14 @@
 """tools/conv_compare.py: both conv forms on the same real boxes, the same points and values."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 from _device import DEVICE
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "conv_compare.py"
+from _tools import load_tool
 
 
 def test_conv_forms_agree_on_real_boxes(shared, caffe_weights, tmp_path):
-    spec = importlib.util.spec_from_file_location("conv_compare", TOOL)
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("conv_compare")
     out = tmp_path / "conv.json"
     args = ["--dataset", str(shared / "data" / "ycbv"), "--device", DEVICE, "--poses", "6", "--repeat", "1"]
     assert tool.main([*args, "--out", str(out)]) == 0

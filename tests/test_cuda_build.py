@@ -11,29 +11,20 @@ session spends its time on them. It says nothing about results on a GPU: those a
 from __future__ import annotations
 
 import importlib
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
+from _tools import load_tool
 
 wp = pytest.importorskip("warp")
 
 from perch_warp.kernels.features import feature_kernels  # noqa: E402
 
-TOOLS = Path(__file__).resolve().parents[1] / "tools"
 # sm_90: the H100/H200 machines the project's GPU figures come from.
 ARCH = 90
 
 
-def _resources_tool():
-    spec = importlib.util.spec_from_file_location("cuda_resources", TOOLS / "cuda_resources.py")
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
-    return tool
-
-
-KERNEL_MODULES = _resources_tool().kernel_modules()
+KERNEL_MODULES = load_tool("cuda_resources").kernel_modules()
 
 
 def _nvrtc_archs() -> list[int]:
@@ -86,7 +77,7 @@ def test_kernel_modules_are_found():
 def test_occupancy_formula_reproduces_nsight_compute_on_the_h100():
     """Nsight Compute on an H100 (docs/performance.md) measured render_boxes at 71 registers per
     thread, theoretical occupancy 37.5 %, blocks of 256: the formula must give the same."""
-    tool = _resources_tool()
+    tool = load_tool("cuda_resources")
     assert tool.theoretical_occupancy(71, 256, 90) == (0.375, 3)
     assert tool.theoretical_occupancy(64, 256, 90) == (0.5, 4)  # 64 x 256 x 4 = the SM's 65,536 registers
     assert tool.theoretical_occupancy(16, 256, 90) == (1.0, 8)  # then threads per SM limit
@@ -94,7 +85,7 @@ def test_occupancy_formula_reproduces_nsight_compute_on_the_h100():
 
 
 def test_cubin_registers_are_read_for_every_kernel(tmp_path):
-    tool = _resources_tool()
+    tool = load_tool("cuda_resources")
     mod = importlib.import_module("perch_warp.kernels.render")
     (cubin,) = wp.compile_aot_module(mod, arch=ARCH, module_dir=tmp_path, use_ptx=False)
     res = tool.cubin_resources(cubin)

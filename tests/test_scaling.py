@@ -1,18 +1,13 @@
 """tools/scaling.py on a tiny sweep of the real frame: every point searched, its rays and renderer recorded."""
 
-import importlib.util
 import json
-from pathlib import Path
 
 from _device import DEVICE
-
-TOOL = Path(__file__).resolve().parents[1] / "tools" / "scaling.py"
+from _tools import load_tool
 
 
 def test_image_scale_sweep_records_rays_and_renderer(shared, tmp_path):
-    spec = importlib.util.spec_from_file_location("scaling", TOOL)
-    tool = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(tool)
+    tool = load_tool("scaling")
     args = ["--dataset", str(shared / "data" / "ycbv"), "--device", DEVICE, "--yaw-step", "1.5"]
     args += ["--base-clip", "0.05", "--base-xy", "0.04", "--base-scale", "0.25", "--clips", "0.05"]
     args += ["--xy-steps", "0.04", "--scales", "0.25", "0.5", "--out", str(tmp_path)]
