@@ -250,3 +250,22 @@ def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights, score)
     # The outline term's bound is looser by up to its weight (perch_warp.outline): in this small space
     # it rules nothing out, so only its exactness is checked; every other term prunes here.
     assert b.info.extra["scored"] < len(space) or parse_score(score)[1].outline > 0
+
+
+def test_footing_prior_is_each_candidates_own_footing(scene, caffe_weights):
+    """The footing term, computed once per place, adds to each candidate w times its own place's footing."""
+    from perch_warp.footing import footing, footprint_radius_m
+
+    space = _space(scene, half=0.06, step=0.03, yaw_step_deg=60.0)
+    engine = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(score="table=0.5"))
+    service = engine.scoring(scene.image, scene.camera, scene.table, scene.resting)
+    x, y, yaw = space.candidates()
+    c = service.candidates(x, y, yaw)
+    radius = footprint_radius_m(service.backends.boxes.hull_m, scene.resting)
+    ks, stride = service.backends.weights.kernel_size, service.config.stride
+    own = [
+        footing(scene.table, scene.camera, service.photo.likeness, x[i], y[i], radius, ks, stride)[0]
+        for i in range(len(x))
+    ]
+    assert len(set(np.round(own, 12))) > 1  # not vacuous: the places' footings differ
+    np.testing.assert_array_equal(c.prior, 0.5 * np.array(own))

@@ -296,8 +296,11 @@ class ScoringService:
         if self.terms.table > 0.0:
             radius = footprint_radius_m(self.backends.boxes.hull_m, self.resting)
             ks, stride = self.backends.weights.kernel_size, self.config.stride
-            where = footing(self.table, self.camera, self.photo.likeness, x, y, radius, ks, stride)
-            prior = self.terms.table * np.broadcast_to(where, (len(R),))
+            # Once per place: a chunk holds each place at every yaw, and the footing ignores the yaw.
+            xy = np.stack(np.broadcast_arrays(np.atleast_1d(x), np.atleast_1d(y)), axis=1)
+            places, at = np.unique(xy, axis=0, return_inverse=True)
+            where = footing(self.table, self.camera, self.photo.likeness, *places.T, radius, ks, stride)
+            prior = self.terms.table * np.broadcast_to(where[at.ravel()], (len(R),))
         self.lap("candidates", t)
         return Candidates(R, tr, boxes, gboxes, live, prior)
 
