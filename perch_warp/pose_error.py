@@ -117,6 +117,17 @@ def auc(errors_m, max_threshold_m: float = 0.1) -> float:
     return float(100.0 * np.mean(np.clip(1.0 - e / max_threshold_m, 0.0, 1.0)))
 
 
+def auc_shares(errors_m, max_threshold_m: float = 0.1) -> np.ndarray:
+    """Each error's share (%) of `auc`, whose mean it is: 100 max(0, 1 - e / T); 0 for NaN/inf/None.
+    For intervals and paired differences over targets (perch_warp.eval.metrics)."""
+    return 100.0 * np.clip(1.0 - _clean_errors(errors_m) / max_threshold_m, 0.0, None)
+
+
+def below_shares(errors_m, threshold_m: float = 0.02) -> np.ndarray:
+    """Each error's share (%) of `accuracy_below`, whose mean it is: 100 where e < threshold_m, else 0."""
+    return 100.0 * (_clean_errors(errors_m) < threshold_m)
+
+
 def auc_posecnn(errors_m, max_threshold_m: float = 0.1) -> float:
     """AUC in % exactly as the YCB-Video toolbox computes it (PoseCNN's `VOCap`).
 

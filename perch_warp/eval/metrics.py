@@ -305,20 +305,13 @@ def mean_interval(values: np.ndarray, n_boot: int = 10_000, seed: int = 0) -> tu
 
 def target_shares(adds_m, add_m, te_m) -> dict[str, np.ndarray]:
     """Each target's share (%) of the four pooled accuracy figures, whose means they are: the exact ADD-S
-    AUC (100 max(0, 1 - e / 10 cm)), ADD-S < 2 cm, the exact ADD AUC and translation error < 1 cm. Errors
-    in metres; a failed target (NaN, inf, None) shares nothing."""
-
-    def clean(e):
-        e = np.array([np.inf if v is None else v for v in np.ravel(e)], dtype=np.float64)
-        e[~np.isfinite(e)] = np.inf
-        return e
-
-    adds, add, te = clean(adds_m), clean(add_m), clean(te_m)
+    AUC, ADD-S < 2 cm, the exact ADD AUC and translation error < 1 cm (pose_error.auc_shares,
+    below_shares). Errors in metres; a failed target (NaN, inf, None) shares nothing."""
     return {
-        "auc": 100.0 * np.clip(1.0 - adds / AUC_MAX_THRESHOLD_M, 0.0, None),
-        "adds_below_2cm_pct": 100.0 * (adds < ADDS_THRESHOLD_M),
-        "auc_add": 100.0 * np.clip(1.0 - add / AUC_MAX_THRESHOLD_M, 0.0, None),
-        "te_below_1cm_pct": 100.0 * (te < 0.01),
+        "auc": pose_error.auc_shares(adds_m, AUC_MAX_THRESHOLD_M),
+        "adds_below_2cm_pct": pose_error.below_shares(adds_m, ADDS_THRESHOLD_M),
+        "auc_add": pose_error.auc_shares(add_m, AUC_MAX_THRESHOLD_M),
+        "te_below_1cm_pct": pose_error.below_shares(te_m, 0.01),
     }
 
 
@@ -339,9 +332,8 @@ def joint_summary(rows: list[dict]) -> dict | None:
     own = np.array([r["own_adds_mm"] for r in rs]) / 1000.0
     joint = np.array([r["adds_mm"] for r in rs]) / 1000.0
 
-    j, o = target_shares(joint, joint, joint), target_shares(own, own, own)  # only the ADD-S shares are read
-    d_auc = j["auc"] - o["auc"]
-    d_ok = j["adds_below_2cm_pct"] - o["adds_below_2cm_pct"]
+    d_auc = pose_error.auc_shares(joint, AUC_MAX_THRESHOLD_M) - pose_error.auc_shares(own, AUC_MAX_THRESHOLD_M)
+    d_ok = pose_error.below_shares(joint, ADDS_THRESHOLD_M) - pose_error.below_shares(own, ADDS_THRESHOLD_M)
     changed = [r for r in rs if r["joint_changed"]]
     return {
         "n": len(rs),
