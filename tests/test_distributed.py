@@ -35,23 +35,26 @@ def _args(dataset, out, *extra):
     return p.parse_args(["--dataset", str(dataset), "--out", str(out), *EVAL_ARGS, *extra])
 
 
-def _eval(dataset, out, runner=None, space_fn=None, **kw):
+def _eval(dataset, out, runner=None, space_fn=None, rest=protocol.RestSpec(), scenes=SCENES, **kw):
     """evaluate() as `eval` runs it with EVAL_ARGS: serial unless a runner is given."""
     args = _args(dataset, out)
     config = engine_config_from_args(args)
     space_fn = space_fn or (lambda camera, table, resting: search_space_from_args(args, camera, table))
-    make = None if runner else (lambda paths: protocol.EngineEstimator(paths, args.weights, args.device, config))
+    make = None if runner else (
+        lambda paths: protocol.EngineEstimator(paths, args.weights, args.device, config, rest.mode, rest.roll_step_deg)
+    )  # fmt: skip
     return protocol.evaluate(
-        dataset, out, make_estimator=make, runner=runner, space_fn=space_fn, scenes=SCENES, objects=OBJECTS,
-        progress=False, plots=False, options={"test": "distributed"}, **kw,
+        dataset, out, make_estimator=make, runner=runner, space_fn=space_fn, scenes=scenes, objects=OBJECTS,
+        progress=False, plots=False, options={"test": "distributed", "rest": rest.mode}, **kw,
     )  # fmt: skip
 
 
-def _ray_runner(dataset, on_outcome=None):
+def _ray_runner(dataset, on_outcome=None, rest=protocol.RestSpec()):
     from perch_warp.distributed.eval_runner import RayOptions, ray_runner
 
     args = _args(dataset, "unused")
-    return ray_runner(RayOptions(n_workers=2), args.weights, "cpu", engine_config_from_args(args), on_outcome)
+    config = engine_config_from_args(args)
+    return ray_runner(RayOptions(n_workers=2), args.weights, "cpu", config, on_outcome, rest)
 
 
 def _journal(out) -> list[dict]:
@@ -77,17 +80,6 @@ def test_ray_missing_says_how_to_install_in_one_line(tmp_path, monkeypatch, caps
     assert err.count("\n") == 0 and "pip install -e '.[ray]'" in err
 
 
-
-def test_ray_with_stable_rests_is_refused_in_one_line_before_any_work(tmp_path, capsys):
-    pytest.importorskip("ray")
-    from perch_warp.cli import main
-
-    root = tmp_path / "ds"
-    root.mkdir()
-    out = tmp_path / "out"
-    assert main(["eval", "--dataset", str(root), "--out", str(out), "--ray", "--rest", "stable"]) == 1
-    err = capsys.readouterr().err.strip()
-    assert err.count("\n") == 0 and "--ray runs --rest truth only" in err and not out.exists()
 
 def test_worker_plan_follows_the_cluster():
     assert cluster.plan_workers({"CPU": 2.0}, None) == cluster.WorkerPlan(2, 1, 0, "cpu")
@@ -130,6 +122,20 @@ def test_distributed_results_equal_the_serial_ones(ray_cluster, serial, shared, 
     # Resumable either way: a serial rerun on the distributed OUTDIR has nothing left to do.
     again = _eval(shared / "data" / "ycbv", tmp_path)
     assert again["n_evaluated"] == 3 and len(_journal(tmp_path)) == 3
+
+
+@pytest.mark.ray
+def test_distributed_stable_rests_equal_the_serial_ones(ray_cluster, shared, tmp_path):
+    """--rest stable on the workers: every stable pose of the can searched there, as in this process."""
+    data, stable = shared / "data" / "ycbv", protocol.RestSpec("stable", roll_step_deg=90.0)
+    s = _eval(data, tmp_path / "serial", rest=stable, scenes=[2, 51])
+    d = _eval(data, tmp_path / "ray", runner=_ray_runner(data, rest=stable), rest=stable, scenes=[2, 51])
+    assert s["n_evaluated"] == d["n_evaluated"] == 2 and s["n_failed"] == d["n_failed"] == 0
+    assert _rows(tmp_path / "ray" / "results.csv") == _rows(tmp_path / "serial" / "results.csv")
+    won = {tuple(j["details"]["rest"] for j in _journal(tmp_path / run)) for run in ("serial", "ray")}
+    assert len(won) == 1  # the same resting pose won each target, named in each journal
+    labels = [j["details"]["rest"] for j in _journal(tmp_path / "ray")]
+    assert all(isinstance(label, str) and label for label in labels)
 
 
 @pytest.mark.ray

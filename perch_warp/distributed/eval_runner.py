@@ -15,7 +15,7 @@ from pathlib import Path
 
 from ..bop import ImageInfo, TableCache, Target
 from ..errors import PerchError
-from ..eval.protocol import Outcome, SpaceFn, TargetRunner, failure_reason, prepare_job, stops_the_run
+from ..eval.protocol import Outcome, RestSpec, SpaceFn, TargetRunner, failure_reason, prepare_job, stops_the_run
 from ..image import load_rgb
 from ..mesh import load_mesh
 from ..options import SearchTooLarge
@@ -80,10 +80,12 @@ def ray_runner(
     device: str | None,
     config,
     on_outcome: Callable[[WorkerPool, Target], None] | None = None,
+    rest: RestSpec = RestSpec(),
 ) -> TargetRunner:
-    """A TargetRunner on Ray workers: `config` (EngineConfig) and the weights of `weights_spec` (read
-    here, once) for every target; `device` None: GPUs when the cluster has them. `on_outcome(pool,
-    target)` is called after each outcome (monitoring; the tests kill a busy worker from it)."""
+    """A TargetRunner on Ray workers: `config` (EngineConfig), `rest` (the resting poses searched) and the
+    weights of `weights_spec` (read here, once) for every target; `device` None: GPUs when the cluster has
+    them. `on_outcome(pool, target)` is called after each outcome (monitoring; the tests kill a busy worker
+    from it)."""
 
     def run(todo, tables: TableCache, space_fn: SpaceFn, model_paths: dict[int, Path]) -> Iterator[Outcome]:
         ray = require_ray()
@@ -102,7 +104,7 @@ def ray_runner(
         weights = load_feature_weights(weights_spec)  # read here: workers need no ../shared
         connected = connect(options.address, options.local_cpus)
         try:
-            yield from _run_jobs(ray, jobs, options, weights, device, config, model_paths, on_outcome)
+            yield from _run_jobs(ray, jobs, options, weights, device, config, rest, model_paths, on_outcome)
         finally:
             if connected:
                 ray.shutdown()
@@ -110,7 +112,9 @@ def ray_runner(
     return run
 
 
-def _run_jobs(ray, jobs, options: RayOptions, weights, device, config, model_paths, on_outcome) -> Iterator[Outcome]:
+def _run_jobs(
+    ray, jobs, options: RayOptions, weights, device, config, rest: RestSpec, model_paths, on_outcome
+) -> Iterator[Outcome]:
     """The prepared jobs through a worker pool; each outcome as it comes back."""
     plan = plan_workers(ray.cluster_resources(), device, options.n_workers, options.cpus_per_worker)
     plan = _fewer_for_few(plan, len(jobs))
@@ -123,7 +127,7 @@ def _run_jobs(ray, jobs, options: RayOptions, weights, device, config, model_pat
         im, job = payload
         obj_id = job.target.obj_id
         refs = {"image": shared.image(im), "meshes": {obj_id: shared.mesh(obj_id, model_paths[obj_id])}}
-        return actor.run_target.remote(job, config, refs)
+        return actor.run_target.remote(job, config, refs, rest)
 
     try:
         for key, reply, attempts in pool.run(((j.target.key, (im, j)) for im, j in jobs), submit):

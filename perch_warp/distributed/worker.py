@@ -19,7 +19,7 @@ import time
 from dataclasses import dataclass
 from typing import Any
 
-from ..eval.protocol import EngineEstimator, Job, failure_reason, run_job, stops_the_run
+from ..eval.protocol import EngineEstimator, Job, RestSpec, failure_reason, run_job, stops_the_run
 
 
 @dataclass
@@ -57,15 +57,15 @@ class SearchWorker:
         self._weights_ref = weights_ref[0]
         self._weights = None
         self._meshes: dict[Any, Any] = {}  # mesh key -> ObjectMesh
-        self._estimators: dict[Any, EngineEstimator] = {}  # EngineConfig -> estimator (its engines by mesh key)
+        self._estimators: dict[Any, EngineEstimator] = {}  # (EngineConfig, RestSpec) -> estimator (engines by mesh key)
         self.name = f"{socket.gethostname()}:{os.getpid()}"
 
     def ping(self) -> str:
         """The worker's name, once it has started (its imports done)."""
         return self.name
 
-    def _estimator(self, config, mesh_refs: dict) -> EngineEstimator:
-        """The estimator for `config`, whose engines load their meshes from `mesh_refs` (key -> [ref])."""
+    def _estimator(self, config, mesh_refs: dict, rest: RestSpec = RestSpec()) -> EngineEstimator:
+        """The estimator for `config` and `rest`, whose engines load their meshes from `mesh_refs` (key -> [ref])."""
         import ray
 
         if self._weights is None:
@@ -73,9 +73,13 @@ class SearchWorker:
         if self.device == "cpu" and config.cpu_threads is None:
             # "One thread per core" would count the whole machine's cores: this worker has `cpus` of them.
             config = dataclasses.replace(config, cpu_threads=self.cpus)
-        if config not in self._estimators:
-            self._estimators[config] = EngineEstimator({}, device=self.device, config=config, weights=self._weights)
-        est = self._estimators[config]
+        key = (config, rest)
+        if key not in self._estimators:
+            self._estimators[key] = EngineEstimator(
+                {}, device=self.device, config=config, rest=rest.mode, roll_step_deg=rest.roll_step_deg,
+                weights=self._weights,
+            )  # fmt: skip
+        est = self._estimators[key]
         # A mesh not yet loaded is fetched from this call's references (the driver sends them with every task).
         est.load_mesh = lambda key: self._mesh(key, mesh_refs)
         return est
@@ -87,14 +91,14 @@ class SearchWorker:
             self._meshes[key] = ray.get(mesh_refs[key][0])
         return self._meshes[key]
 
-    def run_target(self, job: Job, config, refs: dict) -> Reply:
+    def run_target(self, job: Job, config, refs: dict, rest: RestSpec = RestSpec()) -> Reply:
         """One eval target: `refs` = {"image": [ref], "meshes": {obj_id: [ref]}}; its Done, or its failure."""
         import ray
 
         t0 = time.perf_counter()
         try:
             image = ray.get(refs["image"][0])
-            done = run_job(job, image, self._estimator(config, refs["meshes"]))
+            done = run_job(job, image, self._estimator(config, refs["meshes"], rest))
             return Reply(value=done, worker=self.name, seconds=time.perf_counter() - t0)
         except Exception as e:  # noqa: BLE001 - a target's failure is its reply; see the module doc
             return Reply(None, failure_reason(e), stops_the_run(e), self.name, time.perf_counter() - t0)

@@ -206,12 +206,11 @@ def _ray_runner(args: argparse.Namespace, config):
     """eval --ray's TargetRunner (perch_warp.distributed), its options checked before any work."""
     from ..distributed.cluster import require_ray
     from ..distributed.eval_runner import RayOptions, ray_runner
+    from .protocol import RestSpec
 
     require_ray()  # before anything is read: without Ray, say how to install it
-    if args.rest != "truth":  # the workers build truth-protocol estimators only, for now
-        raise PerchError("--ray runs --rest truth only (the thesis's protocol); run --rest stable without --ray")
     for flag, n in (("--ray-workers", args.ray_workers), ("--ray-cpus-per-worker", args.ray_cpus_per_worker)):
         if n is not None and n < 1:
             raise PerchError(f"{flag} must be at least 1, got {n}")
     ray_options = RayOptions(args.ray or None, args.ray_workers, args.ray_cpus_per_worker)
-    return ray_runner(ray_options, args.weights, args.device, config)
+    return ray_runner(ray_options, args.weights, args.device, config, rest=RestSpec(args.rest, args.roll_step))

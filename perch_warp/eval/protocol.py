@@ -59,6 +59,16 @@ class Estimate:
     heatmap: object = None
 
 
+@dataclass(frozen=True)
+class RestSpec:
+    """Which resting poses a target's search runs over (`eval --rest`): "truth", the ground truth's
+    height, roll and pitch (the thesis's protocol), or "stable", every stable pose of the mesh
+    (perch_warp.resting), a curved side's roll about the object's own axis every `roll_step_deg`."""
+
+    mode: str = "truth"
+    roll_step_deg: float = DEFAULT_ROLL_STEP_DEG
+
+
 #: (target, image_rgb uint8 HxWx3, camera, table, resting, space) -> Estimate
 Estimator = Callable[[Target, np.ndarray, Camera, Table, RestingPose, object], Estimate]
 #: (camera, table, resting) -> search space (must not look at the ground-truth x, y, yaw)
