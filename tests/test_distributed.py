@@ -81,6 +81,28 @@ def test_ray_missing_says_how_to_install_in_one_line(tmp_path, monkeypatch, caps
 
 
 
+def test_eval_ray_hands_the_resting_pose_mode_to_the_workers(tmp_path, monkeypatch, capsys):
+    """`eval --ray --rest stable --roll-step 45` builds the Ray runner for those stable poses."""
+    pytest.importorskip("ray")
+    from perch_warp.cli import main
+    from perch_warp.distributed import eval_runner
+
+    seen = []
+
+    def fake_runner(options, weights_spec, device, config, on_outcome=None, rest=protocol.RestSpec()):
+        seen.append(rest)
+        raise PerchError("stopped by the test")
+
+    monkeypatch.setattr(eval_runner, "ray_runner", fake_runner)
+    root = tmp_path / "ds"
+    root.mkdir()
+    argv = ["eval", "--dataset", str(root), "--out", str(tmp_path / "out"), "--ray"]
+    assert main([*argv, "--rest", "stable", "--roll-step", "45"]) == 1
+    assert main(argv) == 1
+    assert "stopped by the test" in capsys.readouterr().err
+    assert seen == [protocol.RestSpec("stable", 45.0), protocol.RestSpec("truth", protocol.RestSpec().roll_step_deg)]
+
+
 def test_worker_plan_follows_the_cluster():
     assert cluster.plan_workers({"CPU": 2.0}, None) == cluster.WorkerPlan(2, 1, 0, "cpu")
     assert cluster.plan_workers({"CPU": 16.0, "GPU": 2.0}, None) == cluster.WorkerPlan(2, 1, 1, "cuda:0")
