@@ -58,6 +58,9 @@ class JointChoice:
     combinations: int  # how many combinations there were (all enumerated when exact)
     total_score: float
     conflicts: list[tuple[int, int, str]] = field(default_factory=list)  # (object i, object j, why)
+    # Why each moved object left its own best: (object i, object j, why) for every chosen answer j that
+    # i's own best (peak 0) conflicts with.
+    moved: list[tuple[int, int, str]] = field(default_factory=list)
 
     def to_dict(self) -> dict:
         return {
@@ -66,7 +69,12 @@ class JointChoice:
             "picks": self.picks,
             "total_score": self.total_score,
             "conflicts": [{"objects": [i, j], "why": why} for i, j, why in self.conflicts],
+            "moved": [{"object": i, "by": j, "why": why} for i, j, why in self.moved],
         }
+
+    def moved_by(self, i: int) -> list[tuple[int, str]]:
+        """(object j, why) for each chosen answer that object i's own best conflicts with."""
+        return [(j, why) for k, j, why in self.moved if k == i]
 
 
 def joint_config(config, peaks: int):
@@ -148,8 +156,7 @@ def conflict(p: Peak, q: Peak, alpha: float, overlap_m: float = DEFAULT_OVERLAP_
     near, far = (p, q) if p.distance_m <= q.distance_m else (q, p)
     hidden = hidden_share(near.mask, far.mask)
     if hidden > 1.0 - alpha:
-        which = "second" if far is q else "first"
-        return f"the {which} is {hidden * 100:.0f} % hidden behind the other (more than 1 - alpha)"
+        return f"the farther is {hidden * 100:.0f} % hidden behind the nearer (more than 1 - alpha)"
     return None
 
 
@@ -173,7 +180,14 @@ def choose(
         picks, method = _greedy(scores, table), "greedy"
     total = float(sum(scores[i][a] for i, a in enumerate(picks)))
     left = [(i, j, why) for i in range(n) for j in range(i + 1, n) if (why := table[i][j][picks[i]][picks[j]])]
-    return JointChoice(list(picks), method, combinations, total, left)
+    moved = [
+        (i, j, why)
+        for i in range(n)
+        if picks[i] != 0
+        for j in range(n)
+        if j != i and (why := _pair(table, i, 0, j, picks[j]))
+    ]
+    return JointChoice(list(picks), method, combinations, total, left, moved)
 
 
 def _clash_table(scores, clash) -> list:

@@ -144,7 +144,11 @@ def _object_line(o: ObjectSpec, a: ObjectAnswer) -> str:
 
 def joint_line(choice, objects: list[ObjectSpec], answers: list[ObjectAnswer]) -> str:
     """The joint step in one line: how it chose, what it changed, what conflicts remain."""
-    changed = [o.name for o, a in zip(objects, answers, strict=True) if a.changed]
+    changed = [
+        o.name + "".join(f" ({why} with {objects[j].name})" for j, why in choice.moved_by(n))
+        for n, (o, a) in enumerate(zip(objects, answers, strict=True))
+        if a.changed
+    ]
     line = f"joint step: {choice.method} over {choice.combinations} combinations; " + (
         "changed " + ", ".join(changed) if changed else "every object keeps its own best"
     )

@@ -104,6 +104,26 @@ def n_clash(clash, picks, i, a, earlier) -> int:
     return sum(clash(*p) is not None for p in pairs)
 
 
+def test_choose_says_why_each_moved_object_left_its_own_best():
+    # Object 1's best (0.8) conflicts with object 0's best (0.9) and object 2's best (0.7); object 0 keeps
+    # its best, object 2 too (its best is free of the others' picks), object 1 moves to its second peak.
+    scores = [[0.9, 0.2], [0.8, 0.75], [0.7, 0.1]]
+    clashes = {(0, 0, 1, 0): "overlap", (1, 0, 2, 0): "hidden"}
+
+    def clash(i, a, j, b):
+        return clashes.get((i, a, j, b))
+
+    for exact_max in (0, 10**9):
+        c = choose(scores, clash, exact_max=exact_max)
+        assert c.picks == [0, 1, 0] and c.conflicts == []
+        assert c.moved == [(1, 0, "overlap"), (1, 2, "hidden")]
+        assert c.moved_by(1) == [(0, "overlap"), (2, "hidden")] and c.moved_by(0) == []
+        want = [{"object": 1, "by": 0, "why": "overlap"}, {"object": 1, "by": 2, "why": "hidden"}]
+        assert c.to_dict()["moved"] == want
+    # Nothing moved: nothing to explain.
+    assert choose(scores, lambda *a: None).moved == []
+
+
 def test_choose_refuses_an_object_without_peaks():
     with pytest.raises(ValueError):
         choose([[0.5], []], lambda *a: None)
@@ -178,7 +198,7 @@ def test_hidden_share_and_conflict():
     p = Peak(0.8, apart[0], near, 0.7)
     q = Peak(0.6, apart[1], far, 0.9)
     assert conflict(p, q, alpha=0.5) is None  # exactly half hidden: the top-α mean still sees its own half
-    assert "hidden" in conflict(p, q, alpha=0.6)
+    assert conflict(p, q, alpha=0.6) == "the farther is 50 % hidden behind the nearer (more than 1 - alpha)"
     # The nearer object is the one hidden when the distances swap: near's 400 px, 200 behind far.
     q_near = Peak(0.6, apart[1], far, 0.5)
     assert conflict(p, q_near, alpha=0.5) is None

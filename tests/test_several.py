@@ -65,7 +65,11 @@ def test_two_objects_one_place_the_joint_step_separates_them(scene, tmp_path, ca
     assert two["joint"]["method"] == "exact" and two["joint"]["combinations"] == len(a["joint"]["peaks"]) ** 2
     assert two["joint"]["conflicts"] == [] and two["joint"]["picks"] == [0, b["joint"]["peak"]]
     assert math.hypot(a["pose"]["x_m"] - b["pose"]["x_m"], a["pose"]["y_m"] - b["pose"]["y_m"]) >= 0.05
-    assert "joint step: exact over" in printed and "changed obj_000001.obj #2" in printed
+    assert two["joint"]["moved"] == [{"object": 1, "by": 0, "why": two["joint"]["moved"][0]["why"]}]
+    why = two["joint"]["moved"][0]["why"]  # one place: their footprints overlap, or one hides the other
+    assert why.startswith("footprints overlap by") or "hidden behind" in why
+    assert "joint step: exact over" in printed
+    assert f"changed obj_000001.obj #2 ({why} with obj_000001.obj #1)" in printed
     assert Image.open(tmp_path / "o.png").size[0] == sc.camera.width
     assert sorted(p.name for p in tmp_path.glob("h_*.png")) == ["h_1_obj_000001.png", "h_2_obj_000001.png"]
     # The answers' footprints on the table overlap by no more than the tolerance.
@@ -115,6 +119,10 @@ def test_eval_joint_pairs_each_target_with_its_own_answer(scene, tmp_path, capsy
     with (tmp_path / "out" / "per_target.csv").open() as f:
         rows = list(csv.DictReader(f))
     assert sorted(r["joint_changed"] for r in rows) == ["False", "True"]
+    journal = [json.loads(x) for x in (tmp_path / "out" / "targets.jsonl").read_text().splitlines()]
+    moved = {j["obj_id"]: j["details"]["joint"]["moved_by"] for j in journal}
+    (mover,) = [k for k, v in moved.items() if v]  # the moved target names the other, which stays
+    assert [m["obj_id"] for m in moved[mover]] == [3 - mover] and moved[3 - mover] == []
     assert all(float(r["own_adds_mm"]) < 20.0 for r in rows)
     assert "Joint step (eval --joint): changed 1 of 2 answers" in printed
     assert main(args) == 0  # resumed: both targets journalled, nothing searched again

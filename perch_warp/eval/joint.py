@@ -90,7 +90,7 @@ def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray
     # ground truth's cells (diagnostics) left out.
     dt = (time.perf_counter() - t0 - sum(a.result.timings["probe"] for a in answers)) / len(jobs)
     out = {}
-    for j, e, a in zip(jobs, engines, answers, strict=True):
+    for n, (j, e, a) in enumerate(zip(jobs, engines, answers, strict=True)):
         est = estimator.estimate_of(e, a.result, j.camera, a.best)
         own = a.result.best
         est.details["joint"] = {
@@ -102,6 +102,8 @@ def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray
             "own_score": own.score,
             "method": choice.method,
             "conflicts_left": len(choice.conflicts),
+            # what its own best conflicted with, when the step moved it (which answer, and why)
+            "moved_by": [{"obj_id": jobs[k].target.obj_id, "why": why} for k, why in choice.moved_by(n)],
         }
         est.details["table"] = j.table_how
         est.details.update(_space_details(j.space, j.table, j.target))
