@@ -40,9 +40,7 @@ def _eval(dataset, out, runner=None, space_fn=None, rest=protocol.RestSpec(), sc
     args = _args(dataset, out)
     config = engine_config_from_args(args)
     space_fn = space_fn or (lambda camera, table, resting: search_space_from_args(args, camera, table))
-    make = None if runner else (
-        lambda paths: protocol.EngineEstimator(paths, args.weights, args.device, config, rest.mode, rest.roll_step_deg)
-    )  # fmt: skip
+    make = None if runner else (lambda paths: protocol.EngineEstimator(paths, args.weights, args.device, config, rest))
     return protocol.evaluate(
         dataset, out, make_estimator=make, runner=runner, space_fn=space_fn, scenes=scenes, objects=OBJECTS,
         progress=False, plots=False, options={"test": "distributed", "rest": rest.mode}, **kw,

@@ -435,7 +435,7 @@ def test_rest_stable_reaches_the_estimator_and_is_recorded(tmp_path, monkeypatch
     est, seen = FakeEstimator(), []
 
     def make(*a, **k):
-        seen.append(a[4:])  # (rest, roll step) after (paths, weights, device, config)
+        seen.append(a[4])  # the RestSpec (mode, roll step) after (paths, weights, device, config)
         return est
 
     monkeypatch.setattr(command, "EngineEstimator", make)
@@ -444,12 +444,12 @@ def test_rest_stable_reaches_the_estimator_and_is_recorded(tmp_path, monkeypatch
     base = ["--dataset", str(root), "--objects", "1", "--no-plots", "--xy-step", "0.02"]
     stable = ["--rest", "stable", "--roll-step", "45"]
     assert command.run(p.parse_args([*base, "--out", str(tmp_path / "a"), *stable])) == 0
-    assert seen == [("stable", 45.0)]
+    assert seen == [protocol.RestSpec("stable", 45.0)]
     options = json.loads((tmp_path / "a" / "eval_config.json").read_text())["options"]
     assert (options["rest"], options["roll_step"]) == ("stable", 45.0)
     # The thesis's protocol stays the default, recorded as before --rest existed (old OUTDIRs resume).
     assert command.run(p.parse_args([*base, "--out", str(tmp_path / "b")])) == 0
-    assert seen[-1] == ("truth", 30.0)
+    assert seen[-1] == protocol.RestSpec("truth", 30.0)
     assert "rest" not in json.loads((tmp_path / "b" / "eval_config.json").read_text())["options"]
 
 

@@ -76,9 +76,8 @@ class SearchWorker:
         key = (config, rest)
         if key not in self._estimators:
             self._estimators[key] = EngineEstimator(
-                {}, device=self.device, config=config, rest=rest.mode, roll_step_deg=rest.roll_step_deg,
-                weights=self._weights,
-            )  # fmt: skip
+                {}, device=self.device, config=config, rest=rest, weights=self._weights
+            )
         est = self._estimators[key]
         # A mesh not yet loaded is fetched from this call's references (the driver sends them with every task).
         est.load_mesh = lambda key: self._mesh(key, mesh_refs)

@@ -22,7 +22,7 @@ from ..outputs import check_output_dir
 from ..resting import DEFAULT_ROLL_STEP_DEG
 from ..table import RestingPose, Table
 from .journal import NOT_SEARCH_OPTIONS, RESULTS_FILE
-from .protocol import EngineEstimator, Estimator, evaluate
+from .protocol import EngineEstimator, Estimator, RestSpec, evaluate
 
 # Recorded separately in eval_config.json.
 _EVAL_ARGS = {"dataset", "split", "models", "table_source"}
@@ -128,10 +128,12 @@ def run(args: argparse.Namespace) -> int:
         # The region depends on the view and the table only: never on the ground truth.
         return search_space_from_args(args, camera, table)
 
-    def make_estimator(model_paths: dict[int, Path]) -> Estimator:
-        return EngineEstimator(model_paths, args.weights, args.device, config, args.rest, args.roll_step)
+    rest = RestSpec(args.rest, args.roll_step)
 
-    runner = _ray_runner(args, config) if args.ray is not None else None
+    def make_estimator(model_paths: dict[int, Path]) -> Estimator:
+        return EngineEstimator(model_paths, args.weights, args.device, config, rest)
+
+    runner = _ray_runner(args, config, rest) if args.ray is not None else None
     if args.joint:
         from .joint import joint_runner  # imports the engine (Warp): only when asked for
 
@@ -202,15 +204,14 @@ def _joint_setup(args: argparse.Namespace, config):
     return joint_config(config, args.joint_peaks)
 
 
-def _ray_runner(args: argparse.Namespace, config):
+def _ray_runner(args: argparse.Namespace, config, rest: RestSpec):
     """eval --ray's TargetRunner (perch_warp.distributed), its options checked before any work."""
     from ..distributed.cluster import require_ray
     from ..distributed.eval_runner import RayOptions, ray_runner
-    from .protocol import RestSpec
 
     require_ray()  # before anything is read: without Ray, say how to install it
     for flag, n in (("--ray-workers", args.ray_workers), ("--ray-cpus-per-worker", args.ray_cpus_per_worker)):
         if n is not None and n < 1:
             raise PerchError(f"{flag} must be at least 1, got {n}")
     ray_options = RayOptions(args.ray or None, args.ray_workers, args.ray_cpus_per_worker)
-    return ray_runner(ray_options, args.weights, args.device, config, rest=RestSpec(args.rest, args.roll_step))
+    return ray_runner(ray_options, args.weights, args.device, config, rest=rest)

@@ -87,8 +87,7 @@ class EngineEstimator:
         weights_spec: str = "auto",
         device: str | None = None,
         config=None,
-        rest: str = "truth",
-        roll_step_deg: float = DEFAULT_ROLL_STEP_DEG,
+        rest: RestSpec = RestSpec(),
         *,
         weights=None,
         load_mesh: Callable[[int], object] | None = None,
@@ -97,10 +96,9 @@ class EngineEstimator:
         self.weights_spec = weights_spec
         self.device = device
         self.config = config  # EngineConfig, None: its defaults
-        # "truth": the ground truth's height, roll and pitch (the thesis's protocol); "stable": every
-        # stable pose of the mesh (perch_warp.resting), searched together, as a user without ground truth.
+        # The ground truth's resting pose (the thesis's protocol), or every stable pose of the mesh searched
+        # together, as a user without ground truth has them.
         self.rest = rest
-        self.roll_step_deg = roll_step_deg
         self._weights = weights
         self.load_mesh = load_mesh or (lambda obj_id: load_mesh_file(self.model_paths[obj_id]))
         self._engines: dict[int, object] = {}
@@ -118,8 +116,8 @@ class EngineEstimator:
             self._weights = load_feature_weights(self.weights_spec)
         mesh = self.load_mesh(obj_id)
         self._engines[obj_id] = Engine(mesh, self._weights, self.device, self.config)
-        if self.rest == "stable":
-            self._rests[obj_id] = stable_rests(mesh.vertices_m, mesh.faces, self.roll_step_deg)
+        if self.rest.mode == "stable":
+            self._rests[obj_id] = stable_rests(mesh.vertices_m, mesh.faces, self.rest.roll_step_deg)
 
     def engine(self, obj_id: int):
         """The object's Engine, built on first use."""
@@ -128,7 +126,7 @@ class EngineEstimator:
 
     def searched(self, target: Target, resting: RestingPose):
         """What the target's search runs over: its ground truth's resting pose, or the mesh's stable ones."""
-        return self._rests[target.obj_id] if self.rest == "stable" else resting
+        return self._rests[target.obj_id] if self.rest.mode == "stable" else resting
 
     @staticmethod
     def probe(target: Target, table: Table, resting: RestingPose) -> dict:
