@@ -18,6 +18,7 @@ as `eval`'s diagnostics do. Runs under `--rest truth` only. Exit 1 on bad input.
 from __future__ import annotations
 
 import argparse
+import csv
 import json
 import math
 import shlex
@@ -71,8 +72,6 @@ def truth_nodes(space, x_m: float, y_m: float, yaw_rad: float) -> tuple[np.ndarr
 
 
 def check(out_dir: Path, min_adds_mm: float, device: str | None) -> list[dict]:
-    import csv
-
     from perch_warp import bop
     from perch_warp.bop.targets import TableCache, select_targets
     from perch_warp.eval.command import _ids
