@@ -67,3 +67,19 @@ def test_the_run_options_are_parsed_from_its_command(tool, tmp_path):
     cmd = "python -m perch_warp eval --dataset d --out o --search coarse-to-fine --beam 128 --ray --xy-step 0.02"
     args = tool.run_args(_summary(tmp_path / "run", cmd), device="cpu")
     assert (args.search, args.beam, args.xy_step, args.device) == ("coarse-to-fine", 128, 0.02, "cpu")
+
+
+def test_a_run_without_its_journal_is_a_one_line_error(tool, tmp_path, capsys):
+    out = _summary(tmp_path / "run", "python -m perch_warp eval --dataset d --out o")
+    assert tool.main([str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "per_target.csv not found" in err and "\n" not in err
+
+
+def test_a_run_whose_dataset_is_gone_is_a_one_line_error(tool, tmp_path, capsys):
+    out = _summary(tmp_path / "run", f"python -m perch_warp eval --dataset {tmp_path / 'gone'} --out o")
+    (out / "per_target.csv").write_text("scene_id,im_id,inst,obj_id,adds_mm\n")
+    (out / "targets.jsonl").write_text("")
+    assert tool.main([str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("grid_check: ") and "gone" in err and "\n" not in err

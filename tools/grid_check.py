@@ -81,6 +81,9 @@ def check(out_dir: Path, min_adds_mm: float, device: str | None) -> list[dict]:
     from perch_warp.table import decompose_on_table
 
     args = run_args(out_dir, device)
+    for name in ("per_target.csv", "targets.jsonl"):
+        if not (out_dir / name).is_file():
+            raise SystemExit(f"grid_check: {out_dir / name} not found (the run's folder is incomplete)")
     with (out_dir / "per_target.csv").open(newline="") as f:
         missed = {
             (int(r["scene_id"]), int(r["im_id"]), int(r["inst"])): r
@@ -140,10 +143,15 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--min-adds-mm", type=float, default=20.0, help="check targets with ADD-S at least this (20)")
     ap.add_argument("--device", help="Warp device for the scoring (default: the run's)")
     args = ap.parse_args(argv)
+    from perch_warp.errors import PerchError
+
     try:
         rows = check(args.out, args.min_adds_mm, args.device)
     except SystemExit as e:
         print(e, file=sys.stderr)
+        return 1
+    except PerchError as e:  # e.g. the run's dataset is no longer where its command line says
+        print(f"grid_check: {e}", file=sys.stderr)
         return 1
     lost = [r for r in rows if r["lost_grid_max"]]
     print(
