@@ -48,17 +48,6 @@ def run_args(out_dir: Path, device: str | None) -> argparse.Namespace:
     return args
 
 
-def journal(out_dir: Path) -> dict[tuple[int, int, int], dict]:
-    """The run's journal entries by (scene, image, instance)."""
-    path = out_dir / "targets.jsonl"
-    out = {}
-    with path.open() as f:
-        for line in f:
-            d = json.loads(line)
-            out[(d["scene_id"], d["im_id"], d["inst"])] = d
-    return out
-
-
 def truth_nodes(space, x_m: float, y_m: float, yaw_rad: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """The grid nodes within one step of the truth on every axis (yaw on the circle)."""
     xs, ys, yaws = space.axes()
@@ -75,10 +64,10 @@ def check(out_dir: Path, min_adds_mm: float, device: str | None) -> list[dict]:
     from perch_warp import bop
     from perch_warp.bop.targets import TableCache, select_targets
     from perch_warp.eval.command import _ids
+    from perch_warp.eval.journal import load_state
     from perch_warp.eval.protocol import EngineEstimator, prepare_job
     from perch_warp.image import load_rgb
     from perch_warp.options import engine_config_from_args, search_space_from_args
-    from perch_warp.table import decompose_on_table
 
     args = run_args(out_dir, device)
     for name in ("per_target.csv", "targets.jsonl"):
@@ -90,11 +79,11 @@ def check(out_dir: Path, min_adds_mm: float, device: str | None) -> list[dict]:
             for r in csv.DictReader(f)
             if r["adds_mm"] and float(r["adds_mm"]) >= min_adds_mm
         }
-    entries = journal(out_dir)
     ds = bop.open_dataset(args.dataset, args.split, args.models)
     sel = select_targets(
         ds, _ids(args.scenes, "--scenes"), _ids(args.objects, "--objects"), args.max_images, args.table_source
     )
+    done, _, _ = load_state(out_dir, sel)  # eval's own reader of the journal (a damaged line is skipped, said)
     tables = TableCache(args.table_source)
     estimator = EngineEstimator(sel.model_paths, args.weights, args.device, engine_config_from_args(args))
 
@@ -108,11 +97,12 @@ def check(out_dir: Path, min_adds_mm: float, device: str | None) -> list[dict]:
             key = (t.scene_id, t.im_id, t.inst)
             if key not in missed:
                 continue
-            refine = entries[key]["details"].get("refine")
+            refine = done[key].details.get("refine") if key in done else None
             if not refine:
-                raise SystemExit(f"grid_check: target {key} has no refinement record (run without --no-refine)")
+                raise SystemExit(f"grid_check: target {key} has no refinement record in {out_dir / 'targets.jsonl'}")
             job = prepare_job(im, t, tables, space_fn)
-            _, xg, yg, yawg = decompose_on_table(job.table, t.R_gt, t.t_gt_m)
+            # The truth's place as eval's diagnostics take it (the "truth's cell" they score).
+            xg, yg, yawg = EngineEstimator.probe(t, job.table, job.resting)["probe"]
             x, y, yaw = truth_nodes(job.space, xg, yg, yawg)
             image = load_rgb(im.rgb) if image is None else image
             scores = estimator.engine(t.obj_id).score(image, job.camera, job.table, job.resting, x, y, yaw)
