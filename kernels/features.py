@@ -57,6 +57,19 @@ class Surround:
 
 
 @wp.struct
+class Exposure:
+    """How a window's brightness is read (the score term `light`, perch_warp.score_terms): with gamma 0
+    (the thesis's) conv1 sees the window as it is; otherwise the window is scaled by
+    (ref / max(L, floor))^gamma before conv1, L its mean over pixels and channels (RGB in [0, 1]),
+    so a shadowed or dim surface reads like a lit one (gamma 1: every window at mean brightness ref).
+    conv1 is linear, so that is the bias plus the scaled response of the unbiased filters."""
+
+    gamma: float
+    ref: float
+    floor: float
+
+
+@wp.struct
 class PointLayout:
     """Candidates' feature points, flat: candidate c (of n_cand) owns points [pt_off[c], pt_off[c+1])
     of its grid box gbox[c] = (gx0, gy0, gw, gh), row by row, n_points in all; grid cell (gx, gy) is
@@ -282,6 +295,12 @@ def composite_crops(
         out[base + 2 * n + col] = p[2]
 
 
+@wp.func
+def exposure_gain(exp: Exposure, mean_lum: float) -> float:
+    """The factor a window of mean brightness mean_lum is scaled by (Exposure)."""
+    return wp.pow(exp.ref / wp.max(mean_lum, exp.floor), exp.gamma)
+
+
 @functools.cache
 def feature_kernels(C: int):
     """(vecC, observed_features, score_points, score_features) for C output channels."""
@@ -361,9 +380,13 @@ def feature_kernels(C: int):
         ks: int,
         relu: int,
         sur: Surround,
+        exp: Exposure,
     ) -> vecC:
         half = ks // 2
         acc = bias
+        if exp.gamma != 0.0:
+            acc = vecC()  # the unbiased response, scaled below
+        lum = float(0.0)
         for dy in range(ks):
             y = v + dy - half
             for dx in range(ks):
@@ -371,6 +394,9 @@ def feature_kernels(C: int):
                 p = composite(image, rgb, mask, roff, rb, x, y, sur)
                 k = (dy * ks + dx) * 3
                 acc = acc + Wt[k] * p[0] + Wt[k + 1] * p[1] + Wt[k + 2] * p[2]
+                lum += p[0] + p[1] + p[2]
+        if exp.gamma != 0.0:
+            acc = acc * exposure_gain(exp, lum / float(3 * ks * ks)) + bias
         return rectified(acc, relu)
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -381,6 +407,7 @@ def feature_kernels(C: int):
         ks: int,
         stride: int,
         relu: int,
+        exp: Exposure,
         dummy_rgb: wp.array(dtype=wp.vec3),
         dummy_mask: wp.array(dtype=wp.uint8),
         out: wp.array2d(dtype=vecC),
@@ -403,6 +430,7 @@ def feature_kernels(C: int):
             ks,
             relu,
             photo_only,
+            exp,
         )
 
     @wp.kernel(enable_backward=False, module="unique")
@@ -413,6 +441,7 @@ def feature_kernels(C: int):
         Wt: wp.array(dtype=vecC),
         bias: vecC,
         relu: int,
+        exp: Exposure,
         sur: Surround,
         obs_feat: wp.array2d(dtype=vecC),
         obs_norm: wp.array2d(dtype=float),
@@ -427,7 +456,7 @@ def feature_kernels(C: int):
             return
         roff = seen.pix_off[c]
         rb = seen.box[c]
-        f = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, relu, sur)
+        f = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, relu, sur, exp)
         share = window_share(sur, seen.mask, roff, rb, u, v, pts.ks)
         rim = rim_of(pw, seen.mask, roff, rb, u, v, pts.stride)
         shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out)

@@ -13,7 +13,17 @@ colour each pixel from its face as kernel #1 does. Same layout as kernel #1: can
 import warp as wp
 
 from .features import PointLayout
-from .render import MeshLook, PixelRays, box_pixel, pixel_ray_m, sample_texture, surface_uv, vertex_color
+from .render import (
+    MeshLook,
+    PixelRays,
+    box_pixel,
+    pixel_ray_m,
+    sample_mip,
+    sample_texture,
+    surface_uv,
+    texture_lod,
+    vertex_color,
+)
 
 # Key of a pixel no triangle covers (above any hit's key).
 NO_HIT = wp.constant(wp.int64(0x7FFFFFFFFFFFFFFF))
@@ -254,11 +264,13 @@ def locate_hits(
     n_cand: int,
     key: wp.array(dtype=wp.int64),
     out_uv: wp.array(dtype=wp.vec2),
+    out_lod: wp.array(dtype=float),
     out_rgb: wp.array(dtype=wp.vec3),
     out_mask: wp.array(dtype=wp.uint8),
 ):
     """Pixel i: its nearest face's hit again (the same test, so the same barycentrics as in the
-    search), and there the texture coordinates, or the vertex colour of an untextured mesh."""
+    search), and there the texture coordinates (and with mip-mapping the mip level, as kernel #1
+    computes it), or the vertex colour of an untextured mesh."""
     i = wp.tid()
     k = key[i]
     out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)
@@ -267,9 +279,10 @@ def locate_hits(
         return
     f = int(k & wp.int64(0x7FFFFFFF))
     c, u, v = box_pixel(pix_off, box, n_cand, i)
+    ray = pixel_ray_m(rays, c, u, v)
     h = ray_triangle(
         rays.origin_m[c],
-        pixel_ray_m(rays, c, u, v),
+        ray,
         points[look.indices[f * 3 + 0]],
         points[look.indices[f * 3 + 1]],
         points[look.indices[f * 3 + 2]],
@@ -277,6 +290,8 @@ def locate_hits(
     out_mask[i] = wp.uint8(1)
     if look.use_texture != 0:
         out_uv[i] = surface_uv(look.indices, look.uvs, f, h[2], h[3])
+        if look.mip_levels > 0:
+            out_lod[i] = texture_lod(look, f, h[1], ray, wp.sqrt(rays.fx * rays.fy))
     else:
         out_rgb[i] = vertex_color(look.indices, look.colors, f, h[2], h[3])
 
@@ -285,11 +300,16 @@ def locate_hits(
 def sample_hits(
     look: MeshLook,
     uv: wp.array(dtype=wp.vec2),
+    lod: wp.array(dtype=float),
     mask: wp.array(dtype=wp.uint8),
     out_rgb: wp.array(dtype=wp.vec3),
 ):
-    """Pixel i: the texture at its coordinates. A pass of its own because texture reads miss the
-    cache: with the addresses known up front, a CPU overlaps the misses of many pixels."""
+    """Pixel i: the texture at its coordinates (at its mip level with mip-mapping). A pass of its
+    own because texture reads miss the cache: with the addresses known up front, a CPU overlaps the
+    misses of many pixels."""
     i = wp.tid()
     if mask[i] != wp.uint8(0):
-        out_rgb[i] = sample_texture(look.texture, uv[i])
+        if look.mip_levels > 0:
+            out_rgb[i] = sample_mip(look, uv[i], lod[i])
+        else:
+            out_rgb[i] = sample_texture(look.texture, uv[i])

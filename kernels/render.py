@@ -78,6 +78,14 @@ class MeshLook:
     texture: wp.array2d(dtype=wp.vec3)
     colors: wp.array(dtype=wp.vec3)
     use_texture: int
+    # Mip-mapped lookups (score term texture=mip, perch_warp/mipmap.py); mip_levels 0: one bilinear
+    # lookup in `texture` per pixel, as in the thesis. mip packs the pyramid's levels flat (level 0 =
+    # texture), mip_dims[l] = (offset, width, height) of level l; face_texels[f] = face f's unit normal
+    # (model frame) and its texels per metre at level 0.
+    mip: wp.array(dtype=wp.vec3)
+    mip_dims: wp.array(dtype=wp.vec3i)
+    face_texels: wp.array(dtype=wp.vec4)
+    mip_levels: int
 
 
 @wp.func
@@ -86,6 +94,53 @@ def surface_color(look: MeshLook, face: int, bu: float, bv: float) -> wp.vec3:
     if look.use_texture != 0:
         return sample_texture(look.texture, surface_uv(look.indices, look.uvs, face, bu, bv))
     return vertex_color(look.indices, look.colors, face, bu, bv)
+
+
+@wp.func
+def sample_level(look: MeshLook, level: int, uv: wp.vec2) -> wp.vec3:
+    """sample_texture's bilinear lookup in level `level` of the packed pyramid."""
+    d = look.mip_dims[level]
+    w = d[1]
+    h = d[2]
+    x = (uv[0] - wp.floor(uv[0])) * float(w) - 0.5
+    y = (uv[1] - wp.floor(uv[1])) * float(h) - 0.5
+    x0f = wp.floor(x)
+    y0f = wp.floor(y)
+    fx = x - x0f
+    fy = y - y0f
+    x0 = (int(x0f) + w) % w
+    y0 = (int(y0f) + h) % h
+    x1 = (x0 + 1) % w
+    y1 = (y0 + 1) % h
+    top = look.mip[d[0] + y0 * w + x0] * (1.0 - fx) + look.mip[d[0] + y0 * w + x1] * fx
+    bot = look.mip[d[0] + y1 * w + x0] * (1.0 - fx) + look.mip[d[0] + y1 * w + x1] * fx
+    return top * (1.0 - fy) + bot * fy
+
+
+@wp.func
+def texture_lod(look: MeshLook, face: int, depth_m: float, ray_m: wp.vec3, f_px: float) -> float:
+    """Mip level (fractional, >= 0) whose texel is as wide as the pixel's footprint on `face`: the
+    footprint of a pixel at camera depth depth_m is depth_m / f_px wide facing the ray (f_px the focal
+    length in pixels), and covers
+    1 / cos(incidence) times that area on an inclined face, so its side is taken as
+    depth_m / f / sqrt(cos) (an isotropic filter of the footprint's area; cos clamped at 0.05)."""
+    ft = look.face_texels[face]
+    cos_i = wp.max(wp.abs(wp.dot(wp.vec3(ft[0], ft[1], ft[2]), wp.normalize(ray_m))), 0.05)
+    texels = ft[3] * depth_m / f_px / wp.sqrt(cos_i)
+    if texels <= 1.0:
+        return 0.0
+    return wp.min(wp.log2(texels), float(look.mip_levels - 1))
+
+
+@wp.func
+def sample_mip(look: MeshLook, uv: wp.vec2, lod: float) -> wp.vec3:
+    """Trilinear lookup: the two levels around `lod`, blended."""
+    l0 = int(wp.floor(lod))
+    fr = lod - float(l0)
+    a = sample_level(look, l0, uv)
+    if fr > 0.0 and l0 + 1 < look.mip_levels:
+        return a * (1.0 - fr) + sample_level(look, l0 + 1, uv) * fr
+    return a
 
 
 @wp.struct
@@ -134,9 +189,15 @@ def render_boxes(
 ):
     i = wp.tid()
     c, u, v = box_pixel(pix_off, box, n_cand, i)
-    q = wp.mesh_query_ray(mesh, rays.origin_m[c], pixel_ray_m(rays, c, u, v), 1.0e6)
+    ray = pixel_ray_m(rays, c, u, v)  # its camera-frame z is 1, so q.t is the hit's depth (m)
+    q = wp.mesh_query_ray(mesh, rays.origin_m[c], ray, 1.0e6)
     if q.result:
-        out_rgb[i] = surface_color(look, q.face, q.u, q.v)
+        if look.mip_levels > 0 and look.use_texture != 0:
+            uv = surface_uv(look.indices, look.uvs, q.face, q.u, q.v)
+            f_px = wp.sqrt(rays.fx * rays.fy)
+            out_rgb[i] = sample_mip(look, uv, texture_lod(look, q.face, q.t, ray, f_px))
+        else:
+            out_rgb[i] = surface_color(look, q.face, q.u, q.v)
         out_mask[i] = wp.uint8(1)
     else:
         out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)

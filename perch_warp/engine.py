@@ -81,13 +81,20 @@ class Engine:
         self.mesh = mesh
         self.weights = weights
         t0 = time.perf_counter()
-        self.device_mesh = DeviceMesh(mesh, self.device)  # uploaded once, shared by both renderers
+        self.score_name, self.terms = parse_score(self.config.score)  # perch_warp.score_terms
+        # Uploaded once, shared by both renderers; the score's texture term says how they read the texture.
+        self.device_mesh = DeviceMesh(mesh, self.device, self.terms.texture)
         self._renderers: dict[str, Renderer] = {}
         self.renderer_for(self.default_renderer)  # built now: BVH construction is not a search stage's
         conv = self.config.conv if self.config.conv != "auto" else auto_conv(self.device)
-        self.score_name, self.terms = parse_score(self.config.score)  # perch_warp.score_terms
         self.scorer = FeatureScorer(
-            weights, self.device, self.config.stride, self.config.relu, conv, surround=self.terms.surround
+            weights,
+            self.device,
+            self.config.stride,
+            self.config.relu,
+            conv,
+            surround=self.terms.surround,
+            light=self.terms.light,
         )
         self.scorer.warm_up()
         # Build now: compile time is not a search stage's.

@@ -15,6 +15,7 @@ import warp as wp
 from .camera import Camera
 from .kernels.render import MeshLook
 from .mesh import ObjectMesh
+from .mipmap import set_mip
 from .photo_kernels import primary_pass, shadow_pass
 
 
@@ -56,6 +57,7 @@ def _look(m: ObjectMesh, idx: wp.array) -> MeshLook:
     look.texture = wp.array(m.texture if tex else np.zeros((1, 1, 3), np.float32), dtype=wp.vec3)
     look.colors = wp.array(m.vertex_colors if not tex else np.zeros((1, 3), np.float32), dtype=wp.vec3)
     look.use_texture = int(tex)
+    set_mip(look, None)  # the photographer reads textures as the thesis's render does
     return look
 
 

@@ -30,11 +30,14 @@ from .kernels import raster as raster_kernels
 from .kernels.features import PointLayout
 from .kernels.render import MeshLook, PixelRays, RenderedBoxes, render_boxes
 from .mesh import ObjectMesh
+from .mipmap import set_mip
+from .score_terms import TEXTURES
 
 # Candidates closer than this to the camera plane cannot be rendered sensibly.
 MIN_DEPTH_M = 0.02
 # "auto": on the CPU raster or bvh by RASTER_FACES_PER_PIXEL, on a GPU bvh (the raster form is not measured there).
 RENDERERS = ("auto", "bvh", "raster")
+
 # The raster form's cost grows with faces x candidates, the BVH form's with rays (pixels). On the CPU
 # its render alone was measured faster up to about 20 faces per pixel of a candidate's box, but its
 # exact silhouette bound visits every face for every candidate: whole pruned searches were measured
@@ -198,11 +201,15 @@ def point_layout(
 
 class DeviceMesh:
     """A mesh and its appearance uploaded once to a Warp device (model frame, metres), shared by
-    every renderer of that mesh."""
+    every renderer of that mesh. `texture`: "bilinear" (one lookup per pixel ray, the thesis's) or
+    "mip" (mip-mapped lookups, perch_warp.mipmap; the score term texture=mip)."""
 
-    def __init__(self, mesh: ObjectMesh, device: str):
+    def __init__(self, mesh: ObjectMesh, device: str, texture: str = "bilinear"):
+        if texture not in TEXTURES:
+            raise PerchError(f"texture lookup must be one of {', '.join(TEXTURES)}, got {texture!r}")
         self.device = device
         self.mesh = mesh
+        self.texture = texture
         with wp.ScopedDevice(device):
             self.points = wp.array(mesh.vertices_m.astype(np.float32), dtype=wp.vec3)
             self.indices = wp.array(mesh.faces.reshape(-1).astype(np.int32), dtype=wp.int32)
@@ -218,6 +225,7 @@ class DeviceMesh:
                 look.uvs = wp.zeros(1, dtype=wp.vec2)
                 look.texture = wp.zeros((1, 1), dtype=wp.vec3)
                 look.colors = wp.array(mesh.vertex_colors.astype(np.float32), dtype=wp.vec3)
+            set_mip(look, mesh if texture == "mip" else None)
             self.look = look
 
     @functools.cached_property
@@ -334,14 +342,15 @@ class RasterRenderer(Renderer):
         key = wp.full(n_pix, raster_kernels.NO_HIT, dtype=wp.int64)
         self._per_face(raster_kernels.splat_faces, batch.n, rays, [batch.box, batch.pix_off], key)
         uv = wp.empty(n_pix if look.use_texture else 1, dtype=wp.vec2)
+        lod = wp.empty(n_pix if look.use_texture and look.mip_levels else 1, dtype=float)
         wp.launch(
             raster_kernels.locate_hits,
             dim=n_pix,
             inputs=[self.dmesh.points, look, rays, batch.box, batch.pix_off, batch.n, key],
-            outputs=[uv, batch.rgb, batch.mask],
+            outputs=[uv, lod, batch.rgb, batch.mask],
         )
         if look.use_texture:
-            wp.launch(raster_kernels.sample_hits, dim=n_pix, inputs=[look, uv, batch.mask], outputs=[batch.rgb])
+            wp.launch(raster_kernels.sample_hits, dim=n_pix, inputs=[look, uv, lod, batch.mask], outputs=[batch.rgb])
 
     def silhouette(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, layout: PointLayout) -> wp.array:
         rays = self.pixel_rays(camera, R_m2c, t_m2c_m)
@@ -385,8 +394,8 @@ def make_renderer(method: str, dmesh: DeviceMesh) -> Renderer:
     return RENDERER_CLASSES[method](dmesh)
 
 
-def mesh_renderer(mesh: ObjectMesh, device: str, method: str = "bvh") -> Renderer:
+def mesh_renderer(mesh: ObjectMesh, device: str, method: str = "bvh", texture: str = "bilinear") -> Renderer:
     """A renderer of its own for `mesh` on `device` (the mesh uploaded for it alone; the engine shares one)."""
     if method not in RENDERER_CLASSES:
         raise PerchError(f"renderer method must be bvh or raster, got {method!r}")
-    return RENDERER_CLASSES[method](DeviceMesh(mesh, device))
+    return RENDERER_CLASSES[method](DeviceMesh(mesh, device, texture))

@@ -11,7 +11,7 @@ import warp as wp
 
 from .errors import PerchError
 from .features import FeatureWeights
-from .kernels.features import NOT_ON_MASK, PointWeights, Surround, composite_crops, feature_kernels
+from .kernels.features import NOT_ON_MASK, Exposure, PointWeights, Surround, composite_crops, feature_kernels
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
 from .kernels.render import RenderedBoxes
 from .render import RenderedBatch, flat_offsets, point_layout
@@ -27,6 +27,9 @@ def grid_shape(width: int, height: int, kernel_size: int, stride: int) -> tuple[
 # (torch's conv2d on each candidate's composited crop), or "auto": torch on the CPU, where it is
 # measured faster (docs/performance.md, "Conv1 through torch"); warp on a GPU, where it is not measured.
 CONVS = ("auto", "warp", "torch")
+# The light term's floor: a window darker than this mean brightness (RGB in [0, 1]) is brightened as if it
+# were this bright, so that the sensor noise of a black patch is not magnified without limit.
+LIGHT_FLOOR = 0.1
 
 
 def auto_conv(device: str) -> str:
@@ -76,6 +79,7 @@ class FeatureScorer:
         relu: bool = False,
         conv: str = "warp",
         surround: str = "photo",
+        light: float = 0.0,
     ):
         if conv not in ("warp", "torch"):
             raise PerchError(f"conv must be warp or torch, got {conv!r}")
@@ -100,6 +104,12 @@ class FeatureScorer:
         self.surround.use_fill = int(surround == "fill")
         self.surround.fill = wp.vec3(*(float(m) for m in weights.mean))
         self.surround.by_fraction = int(surround == "weighted")
+        # The light term (perch_warp.score_terms): every window, the photo's and the candidates', brought
+        # towards the preprocessing mean's brightness before conv1.
+        self.exposure = Exposure()
+        self.exposure.gamma = float(light)
+        self.exposure.ref = float(np.mean(weights.mean))
+        self.exposure.floor = LIGHT_FLOOR
         self._buffers: queue.SimpleQueue = queue.SimpleQueue()  # free buffer sets of the torch form
         if conv == "torch":
             import torch
@@ -158,7 +168,17 @@ class FeatureScorer:
             wp.launch(
                 self.k_observed,
                 dim=(rows, cols),
-                inputs=[image, self.Wt, self.bias, self.ks, self.stride, self.relu, self._dummy_rgb, self._dummy_mask],
+                inputs=[
+                    image,
+                    self.Wt,
+                    self.bias,
+                    self.ks,
+                    self.stride,
+                    self.relu,
+                    self.exposure,
+                    self._dummy_rgb,
+                    self._dummy_mask,
+                ],
                 outputs=[out],
             )
         return out
@@ -202,7 +222,7 @@ class FeatureScorer:
                 wp.launch(
                     self.k_score,
                     dim=pts.n_points,
-                    inputs=[image, seen, pts, self.Wt, self.bias, self.relu, *compare],
+                    inputs=[image, seen, pts, self.Wt, self.bias, self.relu, self.exposure, *compare],
                     outputs=[out],
                 )
         return out, pts.pt_off
@@ -235,6 +255,11 @@ class FeatureScorer:
             w, h = int(crops[c, 2]), int(crops[c, 3])
             x = flat_t[3 * int(crop_off[c]) : 3 * int(crop_off[c + 1])].view(1, 3, h, w)
             y = torch.nn.functional.conv2d(x, self._t_weight, self._t_bias, stride=self.stride)
+            if self.exposure.gamma != 0.0:  # conv_at's exposure: the unbiased response scaled per window
+                lum = torch.nn.functional.avg_pool2d(x.mean(dim=1, keepdim=True), self.ks, stride=self.stride)
+                gain = (self.exposure.ref / lum.clamp(min=self.exposure.floor)) ** self.exposure.gamma
+                b = self._t_bias.view(1, -1, 1, 1)
+                y = (y - b) * gain + b
             f_t[C * int(pt_off[c]) : C * int(pt_off[c + 1])].copy_(y.reshape(-1))
         if on_gpu:  # and the features written before Warp's stream reads them
             torch.cuda.synchronize(f_t.device)

@@ -33,6 +33,19 @@ Terms (each off in `thesis`):
   appearance (the table), so a candidate standing on a wall, a monitor or another object's
   top, where the table plane is hidden, loses to one standing on the table. It depends on the
   place alone, so it is added to the bound as it is.
+- ``texture``: how the render reads the mesh's texture (issue 17 (f)). ``bilinear`` (thesis):
+  one lookup per pixel ray, which aliases where a pixel covers many texels (a 2048² texture on
+  a 10 cm object at 0.8 m); ``mip``: mip-mapped lookups, each hit read from a copy of the texture
+  averaged to the pixel's footprint there (perch_warp.mipmap), as a camera pixel averages. Only
+  colours change, not the silhouette, so the bound holds as it is.
+- ``light`` γ: photometric invariance (issue 17 (c)). conv1 with the preprocessing's mean
+  subtracted and its bias is not invariant to brightness: a flat yellow patch at 60 % of its
+  brightness gives a feature pointing elsewhere, so a shadowed target loses to a lit look-alike.
+  With γ > 0 every window, the photo's and the candidate's, is scaled by (ref / max(L, 0.1))^γ
+  before conv1, L its mean brightness and ref the preprocessing mean's (kernels/features.py
+  `Exposure`): γ = 1 reads every window at the same brightness, keeping its colour and texture.
+  The photo's features change with it, so its rarity (k-means) does too; the cosine stays <= 1,
+  so the bound holds as it is.
 - ``shift`` r: the grid stage's tolerance of a misaligned grid (issue 17 (g)). A grid pose
   is up to half a step from the truth, and a small textured object's score peak is narrower
   than that; so a grid candidate is scored against the photo displaced by every (dx, dy) of
@@ -63,6 +76,8 @@ import numpy as np
 from .errors import PerchError
 
 SURROUNDS = ("photo", "fill", "weighted")
+# How kernel #1 reads a texture: one bilinear lookup per pixel ray (the thesis's), or mip-mapped.
+TEXTURES = ("bilinear", "mip")
 RARITY_MODES = ("max", "total")
 MAX_SHIFT = 3  # (2 r + 1)^2 = 49 comparisons per point at most
 
@@ -79,8 +94,14 @@ class ScoreTerms:
     shift: int = 0
     outline: float = 0.0
     table: float = 0.0
+    texture: str = "bilinear"
+    light: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.light) and 0.0 <= self.light <= 1.0):
+            raise PerchError(f"score term light must be in [0, 1], got {self.light}")
+        if self.texture not in TEXTURES:
+            raise PerchError(f"score term texture must be one of {', '.join(TEXTURES)}, got {self.texture!r}")
         if self.surround not in SURROUNDS:
             raise PerchError(f"score term surround must be one of {', '.join(SURROUNDS)}, got {self.surround!r}")
         if self.rarity not in RARITY_MODES:

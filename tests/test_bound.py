@@ -212,6 +212,9 @@ def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(sce
         "outline=1.0",
         "outline=0.3,shift=1,background=0.5",
         "table=0.5,shift=1",
+        "texture=mip,shift=1",
+        "light=1.0",
+        "light=0.5,texture=mip,shift=1",
     ],
 )
 def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
@@ -230,7 +233,13 @@ def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
 
 @pytest.mark.parametrize(
     "score",
-    ["surround=fill,background=0.5,shrink=8", "shift=1,shrink=8", "outline=0.3,shift=1,shrink=8", "table=0.5,shift=1"],
+    [
+        "surround=fill,background=0.5,shrink=8",
+        "shift=1,shrink=8",
+        "outline=0.3,shift=1,shrink=8",
+        "table=0.5,shift=1",
+        "light=1.0,texture=mip,shift=1",
+    ],
 )
 def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights, score):
     """The pruned search stays exact when the score has every new term: the same top-k poses and scores."""

@@ -72,6 +72,7 @@ def _numpy_scores(
     shift=(0, 0),
     outline=0.0,
     edge=None,
+    light=0.0,
 ):
     """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
     in float64, cosine with the photo's feature `shift` = (dx, dy) grid cells away, times rarity there,
@@ -114,6 +115,8 @@ def _numpy_scores(
                     (1, 2, 3)
                 )
                 f += w.bias
+                if light:
+                    f = _lit(W, w, comp[v - half : v + half + 1, u - half : u + half + 1], light)
                 hx, hy = gx + shift[0], gy + shift[1]
                 if not (0 <= hx < rarity.shape[1] and 0 <= hy < rarity.shape[0]):
                     out.append(0.0)
@@ -123,6 +126,8 @@ def _numpy_scores(
                     (1, 2, 3)
                 )
                 fo += w.bias
+                if light:
+                    fo = _lit(W, w, img[q - half : q + half + 1, p - half : p + half + 1] / 255.0, light)
                 share = full[v : v + 2 * half + 1, u : u + 2 * half + 1].mean() if weighted else 1.0
                 cos = f @ fo / (np.linalg.norm(f) * np.linalg.norm(fo))
                 value = cos * share * rarity[hy, hx] - offset[hy, hx]
@@ -130,6 +135,14 @@ def _numpy_scores(
                     value += outline * _numpy_outline(cmask, x0, y0, u, v, stride, edge, shift)
                 out.append(value)
     return np.array(out)
+
+
+def _lit(W, w: FeatureWeights, window01, gamma, floor=0.1):
+    """conv1 of an RGB window in [0, 1] scaled by (ref / max(its mean, floor))^gamma first (the light
+    term), ref the preprocessing mean's brightness; then the network's own normalisation, in float64."""
+    scale = (np.mean(w.mean) / max(window01.mean(), floor)) ** gamma
+    x = (scale * window01 - np.array(w.mean)) / np.array(w.std)
+    return (W * x.transpose(2, 0, 1)[None]).sum((1, 2, 3)) + w.bias
 
 
 def _numpy_outline(cmask, x0, y0, u, v, reach, edge, shift):
@@ -368,3 +381,47 @@ def test_npz_without_preprocessing_is_refused(tmp_path):
     np.savez(p, weight=np.zeros((2, 3, 4, 4), np.float32), bias=np.zeros(2, np.float32), preprocessing="caffe")
     with pytest.raises(PerchError, match="odd k"):
         load_npz(p)
+
+
+@pytest.mark.parametrize("conv", ["warp", "torch"])
+@pytest.mark.parametrize("gamma", [0.5, 1.0])
+def test_light_scores_equal_numpy_reference(random_weights, conv, gamma):
+    """score_terms' light: every window, the photo's and the composited candidate's, scaled towards the
+    preprocessing mean's brightness before conv1 (both conv forms), against a float64 reference."""
+    rng = np.random.default_rng(8)
+    H, W_, stride = 40, 52, 3
+    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, stride)
+    img[:, :20] //= 8  # a dark part, below the floor
+    rows, cols = grid_shape(W_, H, 11, stride)
+    gboxes = grid_boxes(boxes, 11, stride)
+    rarity = rng.random((rows, cols)).astype(np.float32)
+    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv, light=gamma)
+    image = sc.image_to_device(img)
+    obs = sc.observed_features(image)
+    norms = wp.array(np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32), device=DEVICE)
+    vals, _ = sc.score_points(image, batch, gboxes, obs, norms, point_weights(wp.array(rarity, device=DEVICE)))
+    ref = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity, light=gamma)
+    got = vals.numpy()
+    off = ref == NOT_ON_MASK
+    assert np.array_equal(got == NOT_ON_MASK, off) and (~off).sum() > 50
+    np.testing.assert_allclose(got[~off], ref[~off], atol=2e-4)
+    plain = FeatureScorer(random_weights, DEVICE, stride, conv=conv)
+    unlit, _ = plain.score_points(
+        image, batch, gboxes, plain.observed_features(image), norms, point_weights(wp.array(rarity, device=DEVICE))
+    )
+    assert np.abs(unlit.numpy()[~off] - got[~off]).max() > 0.05  # the term changes the scores
+
+
+def test_light_makes_photo_features_brightness_invariant(random_weights):
+    """With light 1 a window's feature does not depend on a brightness factor (above the floor), so a
+    photo at half its brightness has the same features; without it they point elsewhere."""
+    img = np.random.default_rng(9).integers(60, 128, (30, 34, 3)).astype(np.uint8) * 2  # even: halves exactly
+    lit = FeatureScorer(random_weights, DEVICE, 4, light=1.0)
+    a = lit.observed_features(lit.image_to_device(img)).numpy().astype(np.float64)
+    b = lit.observed_features(lit.image_to_device(img // 2)).numpy().astype(np.float64)
+    np.testing.assert_allclose(a, b, rtol=1e-4, atol=1e-3 * np.abs(a).max())
+    plain = FeatureScorer(random_weights, DEVICE, 4)
+    c = plain.observed_features(plain.image_to_device(img)).numpy().astype(np.float64).reshape(-1, 96)
+    d = plain.observed_features(plain.image_to_device(img // 2)).numpy().astype(np.float64).reshape(-1, 96)
+    cos = (c * d).sum(1) / np.linalg.norm(c, axis=1) / np.linalg.norm(d, axis=1)
+    assert cos.min() < 0.99
