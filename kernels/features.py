@@ -22,6 +22,10 @@ gives there, e the photo's normalised intensity gradient at b. With shifts
 photo's feature d = (dx, dy) grid cells away, for every d of `shifts`: value s of point i lands at
 out[s * n_points + i], so each shift's values are laid out like the unshifted ones.
 
+With the light term (`Exposure`, perch_warp.score_terms `light`) every window, the photo's and the
+candidate's composited one, is scaled towards one mean brightness before conv1; off (gamma 0) the
+arithmetic is the thesis's, bit for bit.
+
 Weights arrive folded with the network's preprocessing (they act on RGB in [0, 1])
 and tap-major: Wt[(dy * ks + dx) * 3 + ch_in] is a C-vector over output channels,
 so the inner loop is one C-wide multiply-add that compilers vectorise.

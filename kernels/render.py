@@ -121,9 +121,9 @@ def sample_level(look: MeshLook, level: int, uv: wp.vec2) -> wp.vec3:
 def texture_lod(look: MeshLook, face: int, depth_m: float, ray_m: wp.vec3, f_px: float) -> float:
     """Mip level (fractional, >= 0) whose texel is as wide as the pixel's footprint on `face`: the
     footprint of a pixel at camera depth depth_m is depth_m / f_px wide facing the ray (f_px the focal
-    length in pixels), and covers
-    1 / cos(incidence) times that area on an inclined face, so its side is taken as
-    depth_m / f / sqrt(cos) (an isotropic filter of the footprint's area; cos clamped at 0.05)."""
+    length in pixels) and covers 1 / cos(incidence) times that area on an inclined face, so its side
+    is taken as depth_m / f_px / sqrt(cos) (an isotropic filter of the footprint's area; cos clamped
+    at 0.05, so grazing faces are not blurred without limit)."""
     ft = look.face_texels[face]
     cos_i = wp.max(wp.abs(wp.dot(wp.vec3(ft[0], ft[1], ft[2]), wp.normalize(ray_m))), 0.05)
     texels = ft[3] * depth_m / f_px / wp.sqrt(cos_i)
