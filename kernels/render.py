@@ -33,20 +33,22 @@ def box_pixel(pix_off: wp.array(dtype=wp.int32), box: wp.array(dtype=wp.vec4i), 
 
 
 @wp.func
-def sample_texture(tex: wp.array2d(dtype=wp.vec3), uv: wp.vec2) -> wp.vec3:
-    """Bilinear lookup, texture row 0 at v = 0, UVs wrapped (OBJ convention)."""
-    h = tex.shape[0]
-    w = tex.shape[1]
+def bilinear_taps(uv: wp.vec2, w: int, h: int):
+    """The four texels (x0, y0), (x1, y1) of a bilinear lookup at uv in a w x h texture, row 0 at
+    v = 0, UVs wrapped (OBJ convention), and the weights fx, fy of x1 and y1."""
     x = (uv[0] - wp.floor(uv[0])) * float(w) - 0.5
     y = (uv[1] - wp.floor(uv[1])) * float(h) - 0.5
     x0f = wp.floor(x)
     y0f = wp.floor(y)
-    fx = x - x0f
-    fy = y - y0f
     x0 = (int(x0f) + w) % w
     y0 = (int(y0f) + h) % h
-    x1 = (x0 + 1) % w
-    y1 = (y0 + 1) % h
+    return x0, y0, (x0 + 1) % w, (y0 + 1) % h, x - x0f, y - y0f
+
+
+@wp.func
+def sample_texture(tex: wp.array2d(dtype=wp.vec3), uv: wp.vec2) -> wp.vec3:
+    """Bilinear lookup (bilinear_taps)."""
+    x0, y0, x1, y1, fx, fy = bilinear_taps(uv, tex.shape[1], tex.shape[0])
     top = tex[y0, x0] * (1.0 - fx) + tex[y0, x1] * fx
     bot = tex[y1, x0] * (1.0 - fx) + tex[y1, x1] * fx
     return top * (1.0 - fy) + bot * fy
@@ -101,17 +103,7 @@ def sample_level(look: MeshLook, level: int, uv: wp.vec2) -> wp.vec3:
     """sample_texture's bilinear lookup in level `level` of the packed pyramid."""
     d = look.mip_dims[level]
     w = d[1]
-    h = d[2]
-    x = (uv[0] - wp.floor(uv[0])) * float(w) - 0.5
-    y = (uv[1] - wp.floor(uv[1])) * float(h) - 0.5
-    x0f = wp.floor(x)
-    y0f = wp.floor(y)
-    fx = x - x0f
-    fy = y - y0f
-    x0 = (int(x0f) + w) % w
-    y0 = (int(y0f) + h) % h
-    x1 = (x0 + 1) % w
-    y1 = (y0 + 1) % h
+    x0, y0, x1, y1, fx, fy = bilinear_taps(uv, w, d[2])
     top = look.mip[d[0] + y0 * w + x0] * (1.0 - fx) + look.mip[d[0] + y0 * w + x1] * fx
     bot = look.mip[d[0] + y1 * w + x0] * (1.0 - fx) + look.mip[d[0] + y1 * w + x1] * fx
     return top * (1.0 - fy) + bot * fy
