@@ -37,7 +37,6 @@ from .score_terms import TEXTURES
 MIN_DEPTH_M = 0.02
 # "auto": on the CPU raster or bvh by RASTER_FACES_PER_PIXEL, on a GPU bvh (the raster form is not measured there).
 RENDERERS = ("auto", "bvh", "raster")
-
 # The raster form's cost grows with faces x candidates, the BVH form's with rays (pixels). On the CPU
 # its render alone was measured faster up to about 20 faces per pixel of a candidate's box, but its
 # exact silhouette bound visits every face for every candidate: whole pruned searches were measured
@@ -209,7 +208,6 @@ class DeviceMesh:
             raise PerchError(f"texture lookup must be one of {', '.join(TEXTURES)}, got {texture!r}")
         self.device = device
         self.mesh = mesh
-        self.texture = texture
         with wp.ScopedDevice(device):
             self.points = wp.array(mesh.vertices_m.astype(np.float32), dtype=wp.vec3)
             self.indices = wp.array(mesh.faces.reshape(-1).astype(np.int32), dtype=wp.int32)

@@ -38,6 +38,10 @@ def test_names_and_terms_parse():
         ("outline=-0.1", "outline"),
         ("outline=nan", "outline"),
         ("table=2", "table"),
+        ("light=2", "light must be in"),
+        ("light=-0.5", "light must be in"),
+        ("light=nan", "light must be in"),
+        ("texture=nearest", "texture must be one of"),
     ],
 )
 def test_bad_terms_name_the_culprit(spec, culprit):
