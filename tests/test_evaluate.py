@@ -535,3 +535,23 @@ def test_summary_gives_intervals_around_the_pooled_figures(tmp_path):
         lo, hi = s["pooled_ci95"][k]
         assert lo <= s["pooled"][k] + 1e-9 and s["pooled"][k] <= hi + 1e-9
     assert "95 % bootstrap intervals" in (tmp_path / "out" / "table.txt").read_text()
+
+
+def test_the_estimators_candidate_count_wins_over_one_poses_grid(tmp_path):
+    """Under several resting poses the search scores the grid once per pose: per_target.csv must carry
+    the estimator's count, not the one pose's grid that the eval loop also knows."""
+
+    class Counting(FakeEstimator):
+        def __call__(self, target, image, camera, table, resting, space):
+            est = super().__call__(target, image, camera, table, resting, space)
+            if target.key == (1, 1, 0):
+                est.details["n_candidates"] = 6 * len(space)
+            return est
+
+    root = write_tiny_dataset(tmp_path / "ds")
+    run_eval(root, tmp_path / "out", Counting())
+    rows = csv.DictReader(open(tmp_path / "out" / "per_target.csv"))
+    counts = {(int(r["im_id"]), int(r["inst"])): int(r["n_candidates"]) for r in rows}
+    # (1, 1, 0) and (1, 1, 1): the same object in the same image, so the same grid; only the first
+    # estimator reported its own count.
+    assert counts[(1, 0)] == 6 * counts[(1, 1)] > 0

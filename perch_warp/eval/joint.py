@@ -23,8 +23,8 @@ from .protocol import (
     Outcome,
     SpaceFn,
     TargetRunner,
+    _add_space_details,
     _image,
-    _space_details,
     failure_reason,
     prepare_job,
     stops_the_run,
@@ -106,7 +106,7 @@ def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray
             "moved_by": [{"obj_id": jobs[k].target.obj_id, "why": why} for k, why in choice.moved_by(n)],
         }
         est.details["table"] = j.table_how
-        est.details.update(_space_details(j.space, j.table, j.target))
+        _add_space_details(est.details, j.space, j.table, j.target)
         out[j.target.key] = Done(
             j.target.obj_id, est.R_m2c, est.t_m2c_m, est.score, dt, est.details, heatmap=est.heatmap
         )

@@ -309,7 +309,7 @@ def run_job(job: Job, image_rgb: np.ndarray, estimator: Estimator) -> Done:
     dt = time.perf_counter() - t0 - est.diagnostics_s
     details = dict(est.details)
     details["table"] = job.table_how
-    details.update(_space_details(job.space, job.table, job.target))
+    _add_space_details(details, job.space, job.table, job.target)
     R = np.asarray(est.R_m2c, dtype=np.float64).reshape(3, 3)
     t = np.asarray(est.t_m2c_m, dtype=np.float64).reshape(3)
     return Done(job.target.obj_id, R, t, float(est.score), dt, details, heatmap=est.heatmap)
@@ -426,18 +426,18 @@ def _failed_rows(selection: Selection, failed: dict) -> list[dict]:
     ]
 
 
-def _space_details(space, table: Table, target: Target) -> dict:
-    """Whether the ground truth lies inside the searched region (diagnostic only, never used by the search)."""
-    out: dict = {}
+def _add_space_details(details: dict, space, table: Table, target: Target) -> None:
+    """Adds the searched grid's size and whether the ground truth lies inside the searched region (a
+    diagnostic, never used by the search). An estimator's own count wins: under several resting poses
+    it is the grid times the poses, while `space` is one pose's (x, y, yaw) grid."""
     try:
-        out["n_candidates"] = int(len(space))
+        details.setdefault("n_candidates", int(len(space)))
         _, x, y, _ = decompose_on_table(table, target.R_gt, target.t_gt_m)
         (x0, x1), (y0, y1) = space.x_range_m, space.y_range_m
-        out["gt_in_region"] = bool(x0 <= x <= x1 and y0 <= y <= y1)
-        out["region_m"] = [[x0, x1], [y0, y1]]
+        details["gt_in_region"] = bool(x0 <= x <= x1 and y0 <= y <= y1)
+        details["region_m"] = [[x0, x1], [y0, y1]]
     except (AttributeError, TypeError):
         pass
-    return out
 
 
 # ----------------------------------------------------------------------------- errors and metrics
