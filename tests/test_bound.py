@@ -73,8 +73,9 @@ def test_points_are_the_rendered_masks_feature_points_with_their_rarity(scene, r
 
 
 @RENDERERS
-def test_bound_is_never_below_the_score(scene, random_weights, renderer):
-    engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(renderer=renderer))
+@pytest.mark.parametrize("alpha,relu", [(0.5, False), (0.35, False), (0.7, False), (0.5, True)])
+def test_bound_is_never_below_the_score(scene, random_weights, renderer, alpha, relu):
+    engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(renderer=renderer, alpha=alpha, relu=relu))
     photo, R, t, boxes, gboxes = _candidates(engine, scene, _space(scene), scene.camera)
     ks, s, alpha = random_weights.kernel_size, engine.config.stride, engine.config.alpha
     bounds = silhouette_bounds(engine.renderer, scene.camera, R, t, boxes, gboxes, photo.ceiling, ks, s, alpha)

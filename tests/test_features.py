@@ -44,6 +44,18 @@ def test_photo_features_equal_torch_conv(random_weights, stride):
     assert np.abs(got - ref).max() < 1e-3 * np.abs(ref).max()
 
 
+@pytest.mark.parametrize("stride", [1, 4])
+def test_relu_photo_features_equal_rectified_torch_conv(random_weights, stride):
+    img = np.random.default_rng(2).integers(0, 256, (37, 45, 3), dtype=np.uint8)
+    sc = FeatureScorer(random_weights, DEVICE, stride, relu=True)
+    got = sc.observed_features(sc.image_to_device(img)).numpy()
+    raw = _torch_features(img, random_weights, stride)
+    ref = np.maximum(raw, 0.0)
+    assert (raw < 0).mean() > 0.2  # the rectification has negatives to remove
+    assert np.all(got >= 0.0)
+    assert np.abs(got - ref).max() < 1e-3 * np.abs(ref).max()
+
+
 def test_caffe_preprocessing_is_rgb255_minus_mean(caffe_weights):
     img = np.random.default_rng(2).integers(0, 256, (23, 23, 3), dtype=np.uint8)
     sc = FeatureScorer(caffe_weights, DEVICE, 4)
@@ -73,13 +85,15 @@ def _numpy_scores(
     outline=0.0,
     edge=None,
     light=0.0,
+    relu=False,
 ):
     """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
     in float64, cosine with the photo's feature `shift` = (dx, dy) grid cells away, times rarity there,
     minus offset there (0 where that cell is beyond the grid), plus with `outline` the outline term:
     outline * |edge(b + shift * stride) . n / |n|| at a point with a pixel off the mask within `stride`
     along +x, -x, +y, -y (b: the nearest, the first direction on a tie; n: the directions' sum weighted
-    by (stride + 1 - t) / stride)."""
+    by (stride + 1 - t) / stride). With `relu` both features are rectified (AlexNet's ReLU) before the cosine,
+    which is 0 where either vanishes."""
     offset = np.zeros_like(rarity) if offset is None else offset
     norm = (img.astype(np.float64) / 255.0 - np.array(w.mean)) / np.array(w.std)
     W = w.weight.astype(np.float64)
@@ -128,8 +142,11 @@ def _numpy_scores(
                 fo += w.bias
                 if light:
                     fo = _lit(W, w, img[q - half : q + half + 1, p - half : p + half + 1] / 255.0, light)
+                if relu:
+                    f, fo = np.maximum(f, 0.0), np.maximum(fo, 0.0)
                 share = full[v : v + 2 * half + 1, u : u + 2 * half + 1].mean() if weighted else 1.0
-                cos = f @ fo / (np.linalg.norm(f) * np.linalg.norm(fo))
+                denom = np.linalg.norm(f) * np.linalg.norm(fo)
+                cos = f @ fo / denom if denom > 1e-12 else 0.0
                 value = cos * share * rarity[hy, hx] - offset[hy, hx]
                 if outline > 0:
                     value += outline * _numpy_outline(cmask, x0, y0, u, v, stride, edge, shift)
@@ -337,6 +354,33 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround):
     assert np.array_equal(got == NOT_ON_MASK, off) and 0 < off.sum() < len(ref)
     assert (ref == 0.0).sum() > 5  # on-mask points beyond the feature grid were exercised
     assert np.abs(got[~off] - ref[~off]).max() < 1e-4
+
+
+@pytest.mark.parametrize("conv", ["warp", "torch"])
+def test_relu_scores_equal_numpy_reference(random_weights, conv):
+    """`--relu`: candidate and photo features rectified before the cosine, in both conv forms."""
+    rng = np.random.default_rng(7)
+    H, W_, stride = 40, 52, 3
+    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, stride)
+    rows, cols = grid_shape(W_, H, 11, stride)
+    gboxes = grid_boxes(boxes, 11, stride)
+    rarity = rng.random((rows, cols)).astype(np.float32)
+
+    def scores(relu):
+        sc = FeatureScorer(random_weights, DEVICE, stride, relu=relu, conv=conv)
+        image = sc.image_to_device(img)
+        obs = sc.observed_features(image)
+        norms = np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32)
+        pw = point_weights(wp.array(rarity, device=DEVICE), None)
+        return sc.score_points(image, batch, gboxes, obs, wp.array(norms, device=DEVICE), pw)[0].numpy()
+
+    got = scores(True)
+    ref = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity, relu=True)
+    off = ref == NOT_ON_MASK
+    assert np.array_equal(got == NOT_ON_MASK, off) and 0 < off.sum() < len(ref)
+    assert np.abs(got[~off] - ref[~off]).max() < 1e-4
+    # Rectified cosines are never negative, and the ReLU changes the values (a test that can fail).
+    assert np.all(got[~off] >= -1e-6) and np.abs(got[~off] - scores(False)[~off]).max() > 0.05
 
 
 def test_grid_boxes_hold_exactly_the_centres_inside():
