@@ -314,11 +314,12 @@ def test_best_over_shifts_reduces_each_shift_block_as_a_candidate():
     assert np.allclose(got[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=0, atol=1e-12)
 
 
+@pytest.mark.parametrize("relu", [False, True])
 @pytest.mark.parametrize("surround", ["photo", "fill", "weighted"])
 @pytest.mark.parametrize("conv", ["warp", "torch"])
-def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround):
+def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround, relu):
     """Both conv forms, windows composited onto the photo (thesis) or onto the fill, with an offset map
-    (score_terms' background term) or none."""
+    (score_terms' background term) or none, raw conv1 or rectified (`--relu`)."""
     rng = np.random.default_rng(3)
     H, W_, stride = 40, 52, 3
     # The last two boxes hang over the image's edges: their outside points count as 0.
@@ -328,7 +329,7 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround):
     rarity = rng.random((rows, cols)).astype(np.float32)
     offset = (0.3 * rng.random((rows, cols)) * rarity).astype(np.float32) if surround == "fill" else None
 
-    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv, surround=surround)
+    sc = FeatureScorer(random_weights, DEVICE, stride, relu=relu, conv=conv, surround=surround)
     image = sc.image_to_device(img)
     obs = sc.observed_features(image)
     norms = np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32)
@@ -348,39 +349,13 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround):
         offset,
         surround == "fill",
         surround == "weighted",
+        relu=relu,
     )
     assert got.shape == ref.shape and pt_off.numpy()[-1] == len(ref)
     off = ref == NOT_ON_MASK
     assert np.array_equal(got == NOT_ON_MASK, off) and 0 < off.sum() < len(ref)
     assert (ref == 0.0).sum() > 5  # on-mask points beyond the feature grid were exercised
     assert np.abs(got[~off] - ref[~off]).max() < 1e-4
-
-
-@pytest.mark.parametrize("conv", ["warp", "torch"])
-def test_relu_scores_equal_numpy_reference(random_weights, conv):
-    """`--relu`: candidate and photo features rectified before the cosine, in both conv forms."""
-    rng = np.random.default_rng(7)
-    H, W_, stride = 40, 52, 3
-    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, stride)
-    rows, cols = grid_shape(W_, H, 11, stride)
-    gboxes = grid_boxes(boxes, 11, stride)
-    rarity = rng.random((rows, cols)).astype(np.float32)
-
-    def scores(relu):
-        sc = FeatureScorer(random_weights, DEVICE, stride, relu=relu, conv=conv)
-        image = sc.image_to_device(img)
-        obs = sc.observed_features(image)
-        norms = np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32)
-        pw = point_weights(wp.array(rarity, device=DEVICE), None)
-        return sc.score_points(image, batch, gboxes, obs, wp.array(norms, device=DEVICE), pw)[0].numpy()
-
-    got = scores(True)
-    ref = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity, relu=True)
-    off = ref == NOT_ON_MASK
-    assert np.array_equal(got == NOT_ON_MASK, off) and 0 < off.sum() < len(ref)
-    assert np.abs(got[~off] - ref[~off]).max() < 1e-4
-    # Rectified cosines are never negative, and the ReLU changes the values (a test that can fail).
-    assert np.all(got[~off] >= -1e-6) and np.abs(got[~off] - scores(False)[~off]).max() > 0.05
 
 
 def test_grid_boxes_hold_exactly_the_centres_inside():
