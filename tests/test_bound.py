@@ -77,7 +77,7 @@ def test_points_are_the_rendered_masks_feature_points_with_their_rarity(scene, r
 def test_bound_is_never_below_the_score(scene, random_weights, renderer, alpha, relu):
     engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(renderer=renderer, alpha=alpha, relu=relu))
     photo, R, t, boxes, gboxes = _candidates(engine, scene, _space(scene), scene.camera)
-    ks, s, alpha = random_weights.kernel_size, engine.config.stride, engine.config.alpha
+    ks, s = random_weights.kernel_size, engine.config.stride
     bounds = silhouette_bounds(engine.renderer, scene.camera, R, t, boxes, gboxes, photo.ceiling, ks, s, alpha)
     batch = engine.renderer.render(scene.camera, R, t, boxes)
     vals, off = engine.scorer.score_points(photo.image, batch, gboxes, photo.obs, photo.norm, photo.weights)
