@@ -211,6 +211,9 @@ class PointWeights:
     # its weight (0: off, the thesis's score; perch_warp.outline).
     edge: wp.array2d(dtype=wp.vec2)
     outline: float
+    # The rectified term's weight b (0: off, the thesis's score): the cosine is (1 - b) cos(R, I) +
+    # b cos(R+, I+), R+ and I+ the features after AlexNet's ReLU (perch_warp.score_terms `rectified`).
+    rectified: float
 
 
 @wp.func
@@ -323,11 +326,20 @@ def feature_kernels(C: int):
         f: vecC, f_norm: float, g: vecC, g_norm: float, pw: PointWeights, gx: int, gy: int, share: float
     ) -> float:
         """cos(f, g) x gain - offset at grid cell (gx, gy) (f_norm, g_norm: the features' lengths), the cosine
-        weighted by share (1, or the window's covered fraction); cos is 0 where either feature vanishes."""
+        weighted by share (1, or the window's covered fraction); cos is 0 where either feature vanishes.
+        With the rectified term, cos blends in the rectified features' cosine (PointWeights.rectified)."""
         denom = f_norm * g_norm
         cos = float(0.0)
         if denom > 1.0e-12:
             cos = wp.dot(f, g) / denom
+        if pw.rectified > 0.0:
+            fr = rectified(f, 1)
+            gr = rectified(g, 1)
+            denom_r = wp.length(fr) * wp.length(gr)
+            cos_r = float(0.0)
+            if denom_r > 1.0e-12:
+                cos_r = wp.dot(fr, gr) / denom_r
+            cos = (1.0 - pw.rectified) * cos + pw.rectified * cos_r
         if share < 1.0:
             cos = cos * share
         return cos * pw.gain[gy, gx] - pw.offset[gy, gx]

@@ -289,11 +289,17 @@ def best_over_shifts(scores: np.ndarray, n_shifts: int) -> np.ndarray:
 
 
 def point_weights(
-    gain: wp.array, offset: wp.array | None = None, edge: wp.array | None = None, outline: float = 0.0
+    gain: wp.array,
+    offset: wp.array | None = None,
+    edge: wp.array | None = None,
+    outline: float = 0.0,
+    rectified: float = 0.0,
 ) -> PointWeights:
     """The photo's per-point maps for kernel #2, on gain's device: gain (rarity), offset (zeros when None),
-    and for the outline term its weight with the photo's normalised gradient per pixel (perch_warp.outline;
-    edge (H, W) vec2, needed when outline > 0)."""
+    for the outline term its weight with the photo's normalised gradient per pixel (perch_warp.outline;
+    edge (H, W) vec2, needed when outline > 0), and the rectified term's weight (perch_warp.score_terms)."""
+    if not 0.0 <= rectified <= 1.0:
+        raise PerchError(f"the rectified term's weight must be in [0, 1], got {rectified}")
     if outline > 0.0 and edge is None:
         raise PerchError("the outline term needs the photo's edge map")
     pw = PointWeights()
@@ -301,6 +307,7 @@ def point_weights(
     pw.offset = offset if offset is not None else wp.zeros(gain.shape, dtype=float, device=gain.device)
     pw.edge = edge if edge is not None else wp.zeros((1, 1), dtype=wp.vec2, device=gain.device)
     pw.outline = float(outline)
+    pw.rectified = float(rectified)
     return pw
 
 

@@ -46,6 +46,13 @@ Terms (each off in `thesis`):
   `Exposure`): γ = 1 reads every window at the same brightness, keeping its colour and texture.
   The photo's features change with it, so its rarity (k-means) does too; the cosine stays <= 1,
   so the bound holds as it is.
+- ``rectified`` b: raw and rectified conv1 together (a lead of the stop-33 screen: raw conv1 and
+  AlexNet's ReLU after it lose different targets). A point's cosine is (1 - b) cos(R, I) +
+  b cos(R+, I+), R+ = max(R, 0) and I+ = max(I, 0) per channel (0 where either vanishes, as for
+  cos); the photo's rarity stays the raw features'. The ReLU keeps only the channels a window
+  excites, so two windows that agree in what they lack (both dark, both without a red edge) no
+  longer agree for it. A convex blend of two numbers <= 1 is <= 1, so the bound holds as it is.
+  It needs raw conv1 (not `--relu`, whose features are already rectified).
 - ``shift`` r: the grid stage's tolerance of a misaligned grid (issue 17 (g)). A grid pose
   is up to half a step from the truth, and a small textured object's score peak is narrower
   than that; so a grid candidate is scored against the photo displaced by every (dx, dy) of
@@ -54,7 +61,7 @@ Terms (each off in `thesis`):
   Only the grid is scored so: the refinement below the grid compares undisplaced
   (ScoringService.refining), so the answer's pose and score are the plain score's.
 
-The pruned search stays exact for every score: cos <= 1 and gain >= 0 give
+The pruned search stays exact for every score: cos <= 1 (a blend of two cosines with `rectified`) and gain >= 0 give
 value <= gain - offset (+ w * the largest |e| within one stride of the point with the outline
 term, perch_warp.outline) =: ceiling, pointwise on the silhouette, and the top-k sum is
 monotone in every value with the same k and the same positive divisor, so the
@@ -96,8 +103,11 @@ class ScoreTerms:
     table: float = 0.0
     texture: str = "bilinear"
     light: float = 0.0
+    rectified: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.rectified) and 0.0 <= self.rectified <= 1.0):
+            raise PerchError(f"score term rectified must be in [0, 1], got {self.rectified}")
         if not (np.isfinite(self.light) and 0.0 <= self.light <= 1.0):
             raise PerchError(f"score term light must be in [0, 1], got {self.light}")
         if self.texture not in TEXTURES:

@@ -192,3 +192,9 @@ def test_both_conv_forms_give_the_same_scores(scene, caffe_weights):
     assert runs["warp"].best.score == pytest.approx(runs["torch"].best.score, abs=1e-5)
     with pytest.raises(PerchError, match="--conv"):
         EngineConfig(conv="cudnn")
+
+
+def test_rectified_term_with_relu_is_refused(scene, random_weights):
+    """The rectified term blends raw and rectified conv1; with --relu there are no raw features to blend."""
+    with pytest.raises(PerchError, match="drop --relu"):
+        Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="rectified=0.5", relu=True))

@@ -79,6 +79,7 @@ def _numpy_scores(
     edge=None,
     light=0.0,
     relu=False,
+    rectified=0.0,
 ):
     """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
     in float64, cosine with the photo's feature `shift` = (dx, dy) grid cells away, times rarity there,
@@ -86,7 +87,8 @@ def _numpy_scores(
     outline * |edge(b + shift * stride) . n / |n|| at a point with a pixel off the mask within `stride`
     along +x, -x, +y, -y (b: the nearest, the first direction on a tie; n: the directions' sum weighted
     by (stride + 1 - t) / stride). With `relu` both features are rectified (AlexNet's ReLU) before the cosine,
-    which is 0 where either vanishes."""
+    which is 0 where either vanishes; with `rectified` b the cosine is (1 - b) cos + b (the rectified
+    features' cosine)."""
     offset = np.zeros_like(rarity) if offset is None else offset
     norm = (img.astype(np.float64) / 255.0 - np.array(w.mean)) / np.array(w.std)
     W = w.weight.astype(np.float64)
@@ -140,6 +142,10 @@ def _numpy_scores(
                 share = full[v : v + 2 * half + 1, u : u + 2 * half + 1].mean() if weighted else 1.0
                 denom = np.linalg.norm(f) * np.linalg.norm(fo)
                 cos = f @ fo / denom if denom > 1e-12 else 0.0
+                if rectified:
+                    fr, gr = np.maximum(f, 0.0), np.maximum(fo, 0.0)
+                    denom_r = np.linalg.norm(fr) * np.linalg.norm(gr)
+                    cos = (1 - rectified) * cos + rectified * (fr @ gr / denom_r if denom_r > 1e-12 else 0.0)
                 value = cos * share * rarity[hy, hx] - offset[hy, hx]
                 if outline > 0:
                     value += outline * _numpy_outline(cmask, x0, y0, u, v, stride, edge, shift)
@@ -307,12 +313,14 @@ def test_best_over_shifts_reduces_each_shift_block_as_a_candidate():
     assert np.allclose(got[np.isfinite(ref)], ref[np.isfinite(ref)], rtol=0, atol=1e-12)
 
 
-@pytest.mark.parametrize("relu", [False, True])
+@pytest.mark.parametrize("features", ["raw", "relu", "blend"])
 @pytest.mark.parametrize("surround", ["photo", "fill", "weighted"])
 @pytest.mark.parametrize("conv", ["warp", "torch"])
-def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround, relu):
+def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround, features):
     """Both conv forms, windows composited onto the photo (thesis) or onto the fill, with an offset map
-    (score_terms' background term) or none, raw conv1 or rectified (`--relu`)."""
+    (score_terms' background term) or none, raw conv1, rectified (`--relu`) or both blended (the
+    `rectified` term, b = 0.4)."""
+    relu, rectified = features == "relu", 0.4 if features == "blend" else 0.0
     rng = np.random.default_rng(3)
     H, W_, stride = 40, 52, 3
     # The last two boxes hang over the image's edges: their outside points count as 0.
@@ -326,7 +334,11 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround, 
     image = sc.image_to_device(img)
     obs = sc.observed_features(image)
     norms = np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32)
-    pw = point_weights(wp.array(rarity, device=DEVICE), None if offset is None else wp.array(offset, device=DEVICE))
+    pw = point_weights(
+        wp.array(rarity, device=DEVICE),
+        None if offset is None else wp.array(offset, device=DEVICE),
+        rectified=rectified,
+    )
     vals, pt_off = sc.score_points(image, batch, gboxes, obs, wp.array(norms, device=DEVICE), pw)
     got = vals.numpy()
     ref = _numpy_scores(
@@ -343,6 +355,7 @@ def test_candidate_scores_equal_numpy_reference(random_weights, conv, surround, 
         surround == "fill",
         surround == "weighted",
         relu=relu,
+        rectified=rectified,
     )
     assert got.shape == ref.shape and pt_off.numpy()[-1] == len(ref)
     off = ref == NOT_ON_MASK

@@ -42,6 +42,8 @@ def test_names_and_terms_parse():
         ("light=-0.5", "light must be in"),
         ("light=nan", "light must be in"),
         ("texture=nearest", "texture must be one of"),
+        ("rectified=1.5", "rectified must be in"),
+        ("rectified=nan", "rectified must be in"),
     ],
 )
 def test_bad_terms_name_the_culprit(spec, culprit):
