@@ -11,6 +11,7 @@ import perch_warp.search.scoring as scoring
 from perch_warp.camera import camera_from_entry
 from perch_warp.demo import demo_scene
 from perch_warp.engine import Engine, EngineConfig
+from perch_warp.errors import PerchError
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
 from perch_warp.pose_error import adi
