@@ -235,6 +235,14 @@ def rim_of(
 
 
 @wp.func
+def rendered_at(mask: wp.array(dtype=wp.uint8), roff: int, rb: wp.vec4i, x: int, y: int) -> bool:
+    """Whether the candidate's mask covers pixel (x, y) (its composite there is the render's)."""
+    if in_box(rb, x, y):
+        return mask[roff + (y - rb[1]) * rb[2] + (x - rb[0])] != wp.uint8(0)
+    return False
+
+
+@wp.func
 def composite(
     image: wp.array2d(dtype=wp.vec3),
     rgb: wp.array(dtype=wp.vec3),
@@ -277,11 +285,14 @@ def composite_crops(
     crop: wp.array(dtype=wp.vec4i),
     crop_off: wp.array(dtype=wp.int32),
     sur: Surround,
+    part: int,
     out: wp.array(dtype=float),
 ):
     """Thread (c, row): that row of candidate c's crop (x0, y0, w, h), the pixels its feature points'
     windows read, packed flat from 3 crop_off[c] as 3 planes (R, G, B) of h rows. Pixels beyond the
-    photo are 0: only points beyond the photo's feature grid read them, and those are not compared."""
+    photo are 0: only points beyond the photo's feature grid read them, and those are not compared.
+    `part` 0: the composited window; 1: its rendered pixels alone (0 elsewhere); 2: the rest alone
+    (0 where rendered): conv1 is linear, so the exposure term scales part 1's response alone."""
     c, row = wp.tid()
     cr = crop[c]
     if row >= cr[3]:
@@ -297,6 +308,10 @@ def composite_crops(
         p = wp.vec3(0.0, 0.0, 0.0)
         if in_box(photo, x, y):
             p = composite(image, seen.rgb, seen.mask, roff, rb, x, y, sur)
+            if part != 0:
+                rendered = rendered_at(seen.mask, roff, rb, x, y)
+                if (part == 1) != rendered:
+                    p = wp.vec3(0.0, 0.0, 0.0)
         out[base + col] = p[0]
         out[base + n + col] = p[1]
         out[base + 2 * n + col] = p[2]
@@ -358,11 +373,13 @@ def feature_kernels(C: int):
         i: int,
         rim: Rim,
         stride: int,
+        block0: int,
         out: wp.array(dtype=float),
     ):
-        """out[s n_points + i] = weighted_cosine of f with the photo's feature shifts[s] cells away from
-        (gx, gy), plus the outline term there (`rim`: rim_of's); 0 where that cell is beyond the photo's
-        feature grid (as for an unshifted point there)."""
+        """out[(block0 + s) n_points + i] = weighted_cosine of f with the photo's feature shifts[s] cells
+        away from (gx, gy), plus the outline term there (`rim`: rim_of's); 0 where that cell is beyond
+        the photo's feature grid (as for an unshifted point there). block0: the first of this f's blocks
+        (gain k of the exposure term writes blocks k S .. k S + S - 1)."""
         grid = wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0])
         f_norm = wp.length(f)  # the same for every shift
         for s in range(shifts.shape[0]):
@@ -374,13 +391,42 @@ def feature_kernels(C: int):
                 if rim.on != 0:
                     d = shifts[s] * stride  # the whole silhouette moves: its outline pixel with it
                     value += pw.outline * outline_credit(pw.edge, rim.bx + d[0], rim.by + d[1], rim.normal)
+            out[(block0 + s) * n_points + i] = value
+
+    @wp.func
+    def not_compared(value: float, n_blocks: int, n_points: int, i: int, out: wp.array(dtype=float)):
+        """A point that is not compared (point_to_compare) holds the same value in every block (every
+        shift and exposure gain)."""
+        for s in range(n_blocks):
             out[s * n_points + i] = value
 
     @wp.func
-    def not_compared(value: float, shifts: wp.array(dtype=wp.vec2i), n_points: int, i: int, out: wp.array(dtype=float)):
-        """A point that is not compared (point_to_compare) holds the same value under every shift."""
-        for s in range(shifts.shape[0]):
-            out[s * n_points + i] = value
+    def exposed_values(
+        a: vecC,
+        q: vecC,
+        gains: wp.array(dtype=float),
+        relu: int,
+        obs_feat: wp.array2d(dtype=vecC),
+        obs_norm: wp.array2d(dtype=float),
+        pw: PointWeights,
+        gx: int,
+        gy: int,
+        share: float,
+        shifts: wp.array(dtype=wp.vec2i),
+        n_points: int,
+        i: int,
+        rim: Rim,
+        stride: int,
+        out: wp.array(dtype=float),
+    ):
+        """The exposure term: the point's feature with the render read gains[k] times as bright is
+        gains[k] a + q (a: conv1's response to the window's rendered pixels alone, q: the bias plus the
+        rest's), compared under every shift into blocks k S .. k S + S - 1."""
+        for k in range(gains.shape[0]):
+            f = rectified(gains[k] * a + q, relu)
+            shifted_values(
+                f, obs_feat, obs_norm, pw, gx, gy, share, shifts, n_points, i, rim, stride, k * shifts.shape[0], out
+            )
 
     @wp.func
     def conv_at(
@@ -414,6 +460,39 @@ def feature_kernels(C: int):
         if exp.gamma != 0.0:
             acc = acc * exposure_gain(exp, lum / float(3 * ks * ks)) + bias
         return rectified(acc, relu)
+
+    @wp.func
+    def conv_split(
+        image: wp.array2d(dtype=wp.vec3),
+        rgb: wp.array(dtype=wp.vec3),
+        mask: wp.array(dtype=wp.uint8),
+        roff: int,
+        rb: wp.vec4i,
+        u: int,
+        v: int,
+        Wt: wp.array(dtype=vecC),
+        bias: vecC,
+        ks: int,
+        sur: Surround,
+    ):
+        """conv_at's unrectified response in two parts (a, q): a to the window's rendered pixels alone,
+        q the bias plus the response to the rest (photo or fill), so that a render read g times as
+        bright gives g a + q (the exposure term; not with the light term, which conv_at applies)."""
+        half = ks // 2
+        a = vecC()
+        q = bias
+        for dy in range(ks):
+            y = v + dy - half
+            for dx in range(ks):
+                x = u + dx - half
+                p = composite(image, rgb, mask, roff, rb, x, y, sur)
+                k = (dy * ks + dx) * 3
+                w = Wt[k] * p[0] + Wt[k + 1] * p[1] + Wt[k + 2] * p[2]
+                if rendered_at(mask, roff, rb, x, y):
+                    a = a + w
+                else:
+                    q = q + w
+        return a, q
 
     @wp.kernel(enable_backward=False, module="unique")
     def observed_features(
@@ -463,19 +542,26 @@ def feature_kernels(C: int):
         obs_norm: wp.array2d(dtype=float),
         pw: PointWeights,
         shifts: wp.array(dtype=wp.vec2i),
+        gains: wp.array(dtype=float),
         out: wp.array(dtype=float),
     ):
         i = wp.tid()
         compared, value, c, gx, gy, u, v = point_to_compare(seen, pts, obs_feat.shape[0], obs_feat.shape[1], i)
         if not compared:
-            not_compared(value, shifts, pts.n_points, i, out)
+            not_compared(value, shifts.shape[0] * gains.shape[0], pts.n_points, i, out)
             return
         roff = seen.pix_off[c]
         rb = seen.box[c]
-        f = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, relu, sur, exp)
         share = window_share(sur, seen.mask, roff, rb, u, v, pts.ks)
         rim = rim_of(pw, seen.mask, roff, rb, u, v, pts.stride)
-        shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out)
+        if gains.shape[0] == 1:  # no exposure term: conv_at, the thesis's arithmetic bit for bit
+            f = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, relu, sur, exp)
+            shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, 0, out)
+        else:
+            a, q = conv_split(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, sur)
+            exposed_values(
+                a, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out
+            )
 
     @wp.kernel(enable_backward=False, module="unique")
     def score_features(
@@ -488,15 +574,19 @@ def feature_kernels(C: int):
         obs_norm: wp.array2d(dtype=float),
         pw: PointWeights,
         shifts: wp.array(dtype=wp.vec2i),
+        gains: wp.array(dtype=float),
+        feat_rest: wp.array(dtype=float),
         out: wp.array(dtype=float),
     ):
         """score_points' values from features convolved elsewhere: candidate c's conv1 output as C
         planes of its points (row by row in its grid box) from C pts.pt_off[c] in feat; the same points
-        on and off the mask, the same cosine, the same shifts."""
+        on and off the mask, the same cosine, the same shifts. With the exposure term (gains: more
+        than one), feat holds the response to the rendered pixels alone and feat_rest, laid out alike,
+        the bias plus the rest's (conv_split's a and q)."""
         i = wp.tid()
         compared, value, c, gx, gy, u, v = point_to_compare(seen, pts, obs_feat.shape[0], obs_feat.shape[1], i)
         if not compared:
-            not_compared(value, shifts, pts.n_points, i, out)
+            not_compared(value, shifts.shape[0] * gains.shape[0], pts.n_points, i, out)
             return
         first = pts.pt_off[c]
         n = pts.pt_off[c + 1] - first
@@ -504,9 +594,17 @@ def feature_kernels(C: int):
         f = vecC()
         for ch in range(C):
             f[ch] = feat[at + ch * n]
-        f = rectified(f, relu)
         share = window_share(sur, seen.mask, seen.pix_off[c], seen.box[c], u, v, pts.ks)
         rim = rim_of(pw, seen.mask, seen.pix_off[c], seen.box[c], u, v, pts.stride)
-        shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out)
+        if gains.shape[0] == 1:
+            f = rectified(f, relu)
+            shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, 0, out)
+        else:
+            q = vecC()
+            for ch in range(C):
+                q[ch] = feat_rest[at + ch * n]
+            exposed_values(
+                f, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out
+            )
 
     return vecC, observed_features, score_points, score_features

@@ -15,7 +15,7 @@ from .kernels.features import NOT_ON_MASK, Exposure, PointWeights, Surround, com
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
 from .kernels.render import RenderedBoxes
 from .render import RenderedBatch, flat_offsets, point_layout
-from .score_terms import SURROUNDS
+from .score_terms import SURROUNDS, exposure_gains
 
 
 def grid_shape(width: int, height: int, kernel_size: int, stride: int) -> tuple[int, int]:
@@ -97,7 +97,9 @@ class FeatureScorer:
             self.bias = self.vecC(*b.tolist())
             self._dummy_rgb = wp.zeros(1, dtype=wp.vec3)
             self._dummy_mask = wp.zeros(1, dtype=wp.uint8)
+            self._dummy_feat = wp.zeros(1, dtype=float)
         self._shifts: dict[int, wp.array] = {0: shift_array(0, device)}
+        self._gains: dict[float, wp.array] = {0.0: exposure_array(0.0, device)}
         # Beyond the mask a window sees the photo, or the preprocessing mean (conv1's zero input);
         # "weighted": the photo, with the cosine weighted by the window's covered fraction.
         self.surround = Surround()
@@ -126,6 +128,12 @@ class FeatureScorer:
         if radius not in self._shifts:
             self._shifts[radius] = shift_array(radius, self.device)
         return self._shifts[radius]
+
+    def gains(self, stops: float) -> wp.array:
+        """exposure_array(stops) on this scorer's device, made once per value."""
+        if stops not in self._gains:
+            self._gains[stops] = exposure_array(stops, self.device)
+        return self._gains[stops]
 
     @contextlib.contextmanager
     def conv_settings(self):
@@ -192,28 +200,40 @@ class FeatureScorer:
         obs_norm: wp.array,
         pw: PointWeights,
         shifts: wp.array | None = None,
+        gains: wp.array | None = None,
     ) -> tuple[wp.array, wp.array]:
         """similarity x gain - offset (pw: the photo's maps, `point_weights`) at every feature-grid
         point of each candidate's box and the flat
         offsets (B + 1,) int32 of each candidate's points, both device arrays (they stay there
         for `top_alpha_mean_device`); off-mask points hold NOT_ON_MASK. With `shifts` (shift_array,
         S of them; default: none) the values are S such blocks, block s comparing each point with the
-        photo's feature shifts[s] grid cells away (kernels/features.py)."""
+        photo's feature shifts[s] grid cells away (kernels/features.py). With `gains` (exposure_array,
+        G of them; default: none) the render is read at each gain in turn: G S blocks, block k S + s
+        that of gain k and shift s."""
         pts = point_layout(batch.box, gboxes, self.ks, self.stride, self.device)
         seen = batch.as_struct()
         shifts = self.shifts(0) if shifts is None else shifts
+        gains = self.gains(0.0) if gains is None else gains
+        exposed = gains.shape[0] > 1
+        if exposed and self.exposure.gamma != 0.0:
+            raise PerchError("the exposure term cannot be combined with the light term")
         # what every point is compared with, and how
-        compare = [self.surround, obs_feat, obs_norm, pw, shifts]
+        compare = [self.surround, obs_feat, obs_norm, pw, shifts, gains]
         with wp.ScopedDevice(self.device):
-            out = wp.empty(pts.n_points * shifts.shape[0], dtype=float)
+            out = wp.empty(pts.n_points * shifts.shape[0] * gains.shape[0], dtype=float)
             if self.conv == "torch":
                 bufs = self._take_buffers()
                 try:
-                    feat = self._torch_features(image, seen, gboxes, bufs)
+                    if exposed:  # conv1 is linear: the rendered pixels' response apart from the rest's
+                        feat = self._torch_features(image, seen, gboxes, bufs, part=1)
+                        rest = self._torch_features(image, seen, gboxes, bufs, part=2)
+                    else:
+                        feat = self._torch_features(image, seen, gboxes, bufs)
+                        rest = self._dummy_feat
                     wp.launch(
                         self.k_score_features,
                         dim=pts.n_points,
-                        inputs=[feat, seen, pts, self.relu, *compare],
+                        inputs=[feat, seen, pts, self.relu, *compare, rest],
                         outputs=[out],
                     )
                 finally:
@@ -227,24 +247,35 @@ class FeatureScorer:
                 )
         return out, pts.pt_off
 
-    def _torch_features(self, image: wp.array, seen: RenderedBoxes, gboxes: np.ndarray, bufs: dict) -> wp.array:
+    def _torch_features(
+        self, image: wp.array, seen: RenderedBoxes, gboxes: np.ndarray, bufs: dict, part: int = 0
+    ) -> wp.array:
         """conv1 at every feature point of the batch (seen: kernel #1's output, gboxes: the candidates'
         grid boxes), for `score_features`: candidate c's C planes of its points from C pt_off[c]
         (flat_offsets(gboxes)), a flat device array. Each candidate's windows are composited into
         one crop (composite_crops) that torch's conv2d convolves, one candidate per call, so that a
-        candidate's features never depend on the batch it is in."""
+        candidate's features never depend on the batch it is in. `part` (composite_crops'): 0 the
+        composited windows; 1 their rendered pixels alone, without the bias; 2 the rest, with it."""
         import torch
 
         pt_off = flat_offsets(np.asarray(gboxes, dtype=np.int32))
         crops = crop_boxes(gboxes, self.ks, self.stride)
         crop_off = flat_offsets(crops)
         C = int(self._t_weight.shape[0])
-        feat = _grown(bufs, "feat", C * int(pt_off[-1]), self.device)
+        feat = _grown(bufs, f"feat{part}", C * int(pt_off[-1]), self.device)
         flat = _grown(bufs, "crop", 3 * int(crop_off[-1]), self.device)
+        bias = None if part == 1 else self._t_bias
         wp.launch(
             composite_crops,
             dim=(len(crops), int(crops[:, 3].max(initial=0))),
-            inputs=[image, seen, wp.array(crops, dtype=wp.vec4i), wp.array(crop_off, dtype=wp.int32), self.surround],
+            inputs=[
+                image,
+                seen,
+                wp.array(crops, dtype=wp.vec4i),
+                wp.array(crop_off, dtype=wp.int32),
+                self.surround,
+                part,
+            ],
             outputs=[flat],
         )
         f_t, flat_t = wp.to_torch(feat), wp.to_torch(flat)
@@ -254,7 +285,7 @@ class FeatureScorer:
         for c in np.flatnonzero(crops[:, 2] * crops[:, 3] > 0):
             w, h = int(crops[c, 2]), int(crops[c, 3])
             x = flat_t[3 * int(crop_off[c]) : 3 * int(crop_off[c + 1])].view(1, 3, h, w)
-            y = torch.nn.functional.conv2d(x, self._t_weight, self._t_bias, stride=self.stride)
+            y = torch.nn.functional.conv2d(x, self._t_weight, bias, stride=self.stride)
             if self.exposure.gamma != 0.0:  # conv_at's exposure: the unbiased response scaled per window
                 lum = torch.nn.functional.avg_pool2d(x.mean(dim=1, keepdim=True), self.ks, stride=self.stride)
                 gain = (self.exposure.ref / lum.clamp(min=self.exposure.floor)) ** self.exposure.gamma
@@ -280,6 +311,12 @@ def shift_array(radius: int, device: str) -> wp.array:
     r = range(-int(radius), int(radius) + 1)
     d = sorted(((dx, dy) for dy in r for dx in r), key=lambda p: (p != (0, 0), p[1], p[0]))
     return wp.array(np.array(d, np.int32).reshape(-1, 2), dtype=wp.vec2i, device=device)
+
+
+def exposure_array(stops: float, device: str) -> wp.array:
+    """The exposure term's gains (perch_warp.score_terms `exposure`) as kernel #2 takes them, 1 first:
+    2^(k / 2) for the half stops k / 2 within +-stops; 0 gives (1,) alone (no term)."""
+    return wp.array(exposure_gains(stops), dtype=float, device=device)
 
 
 def best_over_shifts(scores: np.ndarray, n_shifts: int) -> np.ndarray:

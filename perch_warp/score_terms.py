@@ -53,6 +53,16 @@ Terms (each off in `thesis`):
   excites, so two windows that agree in what they lack (both dark, both without a red edge) no
   longer agree for it. A convex blend of two numbers <= 1 is <= 1, so the bound holds as it is.
   It needs raw conv1 (not `--relu`, whose features are already rectified).
+- ``exposure`` e: the render read brighter or darker (issue 17 (c), a per-candidate gain). The
+  render is the texture's albedo, the photo what a camera's exposure and the scene's light made of
+  it: at the ground truth the photo's mean colour is 0.4 to 2.2 times the render's on the synthetic
+  development set, and the misses crowd at the ends. With e > 0 a candidate is scored with its
+  rendered pixels scaled by each gain g = 2^(k/2) within +-e stops (half-stop steps; the photo's
+  pixels in an edge window stay as they are), and its score is the best of those top-α means: the
+  whole silhouette at one gain, so no point picks its own (unlike ``light``, which rescales every
+  window). conv1 is linear, so conv1(g render + rest) = g a + q with a the response to the rendered
+  pixels alone and q the bias plus the rest's: one split convolution serves every gain. Every
+  gain's value is a cosine times the rarity, so the bound holds as it is. Not with ``light``.
 - ``shift`` r: the grid stage's tolerance of a misaligned grid (issue 17 (g)). A grid pose
   is up to half a step from the truth, and a small textured object's score peak is narrower
   than that; so a grid candidate is scored against the photo displaced by every (dx, dy) of
@@ -87,6 +97,7 @@ SURROUNDS = ("photo", "fill", "weighted")
 TEXTURES = ("bilinear", "mip")
 RARITY_MODES = ("max", "total")
 MAX_SHIFT = 3  # (2 r + 1)^2 = 49 comparisons per point at most
+MAX_EXPOSURE = 2.0  # stops: 9 gains, 1/4 to 4
 
 
 @dataclass(frozen=True)
@@ -104,8 +115,15 @@ class ScoreTerms:
     texture: str = "bilinear"
     light: float = 0.0
     rectified: float = 0.0
+    exposure: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.exposure) and 0.0 <= self.exposure <= MAX_EXPOSURE):
+            raise PerchError(f"score term exposure must be 0 to {MAX_EXPOSURE} stops, got {self.exposure}")
+        if float(2.0 * self.exposure).is_integer() is False:
+            raise PerchError(f"score term exposure must be a whole number of half stops, got {self.exposure}")
+        if self.exposure > 0.0 and self.light > 0.0:
+            raise PerchError("score terms exposure and light cannot be combined: choose one")
         if not (np.isfinite(self.rectified) and 0.0 <= self.rectified <= 1.0):
             raise PerchError(f"score term rectified must be in [0, 1], got {self.rectified}")
         if not (np.isfinite(self.light) and 0.0 <= self.light <= 1.0):
@@ -174,6 +192,14 @@ def parse_score(spec: str) -> tuple[str, ScoreTerms]:
             raise PerchError(f"score term {key} needs a {kind}, got {raw!r}") from None
     terms = ScoreTerms(**values)
     return terms.describe() or "thesis", terms
+
+
+def exposure_gains(stops: float) -> np.ndarray:
+    """The exposure term's gains (float32, 1 first): 2^(k / 2) for every half stop k / 2 within
+    +-stops (stops 1: 1, 1/sqrt(2), sqrt(2), 1/2, 2); (1,) for 0."""
+    n = int(round(2.0 * stops))
+    ks = [0] + [k for j in range(1, n + 1) for k in (-j, j)]
+    return np.array([2.0 ** (k / 2.0) for k in ks], dtype=np.float32)
 
 
 def likeness_to_commonest(features: np.ndarray, labels: np.ndarray) -> np.ndarray:

@@ -218,6 +218,8 @@ def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(sce
         "light=0.5,texture=mip,shift=1",
         "rectified=0.5",
         "rectified=1.0,shift=1",
+        "exposure=1",
+        "exposure=0.5,shift=1,surround=fill",
     ],
 )
 def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
@@ -243,6 +245,7 @@ def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
         "table=0.5,shift=1",
         "light=1.0,texture=mip,shift=1",
         "rectified=0.5,shift=1",
+        "exposure=1,shift=1",
     ],
 )
 def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights, score):

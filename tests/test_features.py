@@ -14,6 +14,7 @@ from perch_warp.render import RenderedBatch
 from perch_warp.score import (
     FeatureScorer,
     best_over_shifts,
+    exposure_array,
     grid_boxes,
     grid_shape,
     point_weights,
@@ -21,6 +22,7 @@ from perch_warp.score import (
     top_alpha_mean,
     top_alpha_mean_device,
 )
+from perch_warp.score_terms import exposure_gains
 
 
 def _torch_features(image_u8: np.ndarray, w: FeatureWeights, stride: int) -> np.ndarray:
@@ -80,6 +82,7 @@ def _numpy_scores(
     light=0.0,
     relu=False,
     rectified=0.0,
+    render_gain=1.0,
 ):
     """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
     in float64, cosine with the photo's feature `shift` = (dx, dy) grid cells away, times rarity there,
@@ -88,7 +91,7 @@ def _numpy_scores(
     along +x, -x, +y, -y (b: the nearest, the first direction on a tie; n: the directions' sum weighted
     by (stride + 1 - t) / stride). With `relu` both features are rectified (AlexNet's ReLU) before the cosine,
     which is 0 where either vanishes; with `rectified` b the cosine is (1 - b) cos + b (the rectified
-    features' cosine)."""
+    features' cosine). `render_gain` g: the rendered colours read g times as bright (the exposure term)."""
     offset = np.zeros_like(rarity) if offset is None else offset
     norm = (img.astype(np.float64) / 255.0 - np.array(w.mean)) / np.array(w.std)
     W = w.weight.astype(np.float64)
@@ -97,7 +100,7 @@ def _numpy_scores(
     for c in range(len(boxes)):
         x0, y0, bw, bh = boxes[c]
         gx0, gy0, gw, gh = gboxes[c]
-        crgb = rgb[pix_off[c] : pix_off[c + 1]].reshape(bh, bw, 3)
+        crgb = render_gain * rgb[pix_off[c] : pix_off[c + 1]].reshape(bh, bw, 3).astype(np.float64)
         cmask = mask[pix_off[c] : pix_off[c + 1]].reshape(bh, bw).astype(bool)
         comp = img.astype(np.float64) / 255.0
         if fill:
@@ -229,6 +232,45 @@ def test_shifted_scores_equal_numpy_reference(random_weights, conv):
         off = ref == NOT_ON_MASK
         assert np.array_equal(got[s] == NOT_ON_MASK, off)
         assert np.abs(got[s][~off] - ref[~off]).max() < 1e-4, d
+
+
+@pytest.mark.parametrize("conv", ["warp", "torch"])
+@pytest.mark.parametrize("surround,relu", [("photo", False), ("fill", False), ("photo", True)])
+def test_exposure_scores_equal_numpy_reference(random_weights, conv, surround, relu):
+    """score_terms' exposure: block k S + s of kernel #2's values is the render read gains[k] times as bright,
+    compared shifts[s] cells away (both conv forms; onto the photo or the fill; raw or rectified conv1)."""
+    rng = np.random.default_rng(11)
+    H, W_, stride = 40, 52, 3
+    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, stride)
+    rows, cols = grid_shape(W_, H, 11, stride)
+    gboxes = grid_boxes(boxes, 11, stride)
+    rarity = rng.random((rows, cols)).astype(np.float32)
+    sc = FeatureScorer(random_weights, DEVICE, stride, relu=relu, conv=conv, surround=surround)
+    image = sc.image_to_device(img)
+    obs = sc.observed_features(image)
+    norms = wp.array(np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32), device=DEVICE)
+    pw = point_weights(wp.array(rarity, device=DEVICE))
+    shifts, gains = shift_array(1, DEVICE), exposure_array(1.0, DEVICE)
+    assert np.allclose(gains.numpy(), [1, 2**-0.5, 2**0.5, 0.5, 2])
+    vals, pt_off = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts, gains)
+    n = int(pt_off.numpy()[-1])
+    got = vals.numpy().reshape(5, 9, n)
+    for k, g in enumerate(gains.numpy().tolist()):
+        for s, d in enumerate(shifts.numpy().tolist()):
+            ref = _numpy_scores(
+                img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity,
+                fill=surround == "fill", shift=tuple(d), relu=relu, render_gain=g,
+            )  # fmt: skip
+            off = ref == NOT_ON_MASK
+            assert np.array_equal(got[k, s] == NOT_ON_MASK, off)
+            assert np.abs(got[k, s][~off] - ref[~off]).max() < 1e-4, (g, d)
+
+
+def test_exposure_gains_are_half_stops():
+    assert np.array_equal(exposure_gains(0.0), [1.0])
+    assert np.allclose(exposure_gains(0.5), [1, 2**-0.5, 2**0.5])
+    got = exposure_gains(2.0)
+    assert got[0] == 1.0 and len(got) == 9 and np.isclose(got.min(), 0.25) and np.isclose(got.max(), 4.0)
 
 
 @pytest.mark.parametrize("conv", ["warp", "torch"])

@@ -44,6 +44,10 @@ def test_names_and_terms_parse():
         ("texture=nearest", "texture must be one of"),
         ("rectified=1.5", "rectified must be in"),
         ("rectified=nan", "rectified must be in"),
+        ("exposure=3", "exposure must be 0 to"),
+        ("exposure=0.3", "half stops"),
+        ("exposure=nan", "exposure must be 0 to"),
+        ("exposure=1,light=0.5", "cannot be combined"),
     ],
 )
 def test_bad_terms_name_the_culprit(spec, culprit):

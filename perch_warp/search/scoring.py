@@ -313,7 +313,10 @@ class ScoringService:
         """out[idx] = the scores of candidates idx of c (render, features, top-α), in batches."""
         sizes = c.boxes[idx, 2].astype(np.int64) * c.boxes[idx, 3]
         stats.rays += int(sizes.sum())
-        work = functools.partial(self._score_batch, c, self.backends.scorer.shifts(self.terms.shift))
+        scorer = self.backends.scorer
+        work = functools.partial(
+            self._score_batch, c, scorer.shifts(self.terms.shift), scorer.gains(self.terms.exposure)
+        )
         self._batched(work, idx, sizes, out, stats, self.bar if progress else None)
         if c.prior is not None:
             out[idx] += c.prior[idx]
@@ -328,25 +331,27 @@ class ScoringService:
         if c.prior is not None:  # the place's own term, exactly: the bound stays as tight
             out[idx] += c.prior[idx]
 
-    def _score_batch(self, c: Candidates, shifts: wp.array, idx) -> tuple[np.ndarray, dict[str, float]]:
+    def _score_batch(
+        self, c: Candidates, shifts: wp.array, gains: wp.array, idx
+    ) -> tuple[np.ndarray, dict[str, float]]:
         """Candidates `idx`: render (kernel #1) -> features x similarity x rarity (kernel #2, under each
-        of `shifts`) -> top-α mean (the best over shifts); their scores on the host and the seconds each
-        stage took."""
+        of `shifts` and exposure `gains`) -> top-α mean (the best over shifts and gains); their scores on
+        the host and the seconds each stage took."""
         laps: dict[str, float] = {}
         photo, scorer = self.photo, self.backends.scorer
         t = time.perf_counter()
         batch = self.renderer.render(self.camera, c.R[idx], c.tr[idx], c.boxes[idx])
         t = self.lap("render", t, laps)
         vals, pt_off = scorer.score_points(
-            photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights, shifts
+            photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights, shifts, gains
         )
         t = self.lap("features_score", t, laps)
         # The same kernel on every device, so CPU and GPU runs take the same path to a score.
-        n_shifts = shifts.shape[0]
-        batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha, self.terms.shrink, n_shifts)
+        n_blocks = shifts.shape[0] * gains.shape[0]
+        batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha, self.terms.shrink, n_blocks)
         t = self.lap("reduction", t, laps)
-        # One float per candidate (and shift) crosses to the host, not every feature point.
-        out = best_over_shifts(batch_scores.numpy(), n_shifts)
+        # One float per candidate (and shift and gain) crosses to the host, not every feature point.
+        out = best_over_shifts(batch_scores.numpy(), n_blocks)
         self.lap("transfer", t, laps)
         return out, laps
 
