@@ -55,7 +55,7 @@ Terms (each off in `thesis`):
   It needs raw conv1 (not `--relu`, whose features are already rectified).
 - ``exposure`` e: the render read brighter or darker (issue 17 (c), a per-candidate gain). The
   render is the texture's albedo, the photo what a camera's exposure and the scene's light made of
-  it: at the ground truth the photo's mean colour is 0.4 to 2.2 times the render's on the synthetic
+  it: at the ground truth the photo's mean colour is 0.44 to 1.89 times the render's on the synthetic
   development set, and the misses crowd at the ends. With e > 0 a candidate is scored with its
   rendered pixels scaled by each gain g = 2^(k/2) within +-e stops (half-stop steps; the photo's
   pixels in an edge window stay as they are), and its score is the best of those top-α means: the
