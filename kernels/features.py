@@ -360,48 +360,7 @@ def feature_kernels(C: int):
         return cos * pw.gain[gy, gx] - pw.offset[gy, gx]
 
     @wp.func
-    def shifted_values(
-        f: vecC,
-        obs_feat: wp.array2d(dtype=vecC),
-        obs_norm: wp.array2d(dtype=float),
-        pw: PointWeights,
-        gx: int,
-        gy: int,
-        share: float,
-        shifts: wp.array(dtype=wp.vec2i),
-        n_points: int,
-        i: int,
-        rim: Rim,
-        stride: int,
-        block0: int,
-        out: wp.array(dtype=float),
-    ):
-        """out[(block0 + s) n_points + i] = weighted_cosine of f with the photo's feature shifts[s] cells
-        away from (gx, gy), plus the outline term there (`rim`: rim_of's); 0 where that cell is beyond
-        the photo's feature grid (as for an unshifted point there). block0: the first of this f's blocks
-        (gain k of the exposure term writes blocks k S .. k S + S - 1)."""
-        grid = wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0])
-        f_norm = wp.length(f)  # the same for every shift
-        for s in range(shifts.shape[0]):
-            hx = gx + shifts[s][0]
-            hy = gy + shifts[s][1]
-            value = float(0.0)
-            if in_box(grid, hx, hy):
-                value = weighted_cosine(f, f_norm, obs_feat[hy, hx], obs_norm[hy, hx], pw, hx, hy, share)
-                if rim.on != 0:
-                    d = shifts[s] * stride  # the whole silhouette moves: its outline pixel with it
-                    value += pw.outline * outline_credit(pw.edge, rim.bx + d[0], rim.by + d[1], rim.normal)
-            out[(block0 + s) * n_points + i] = value
-
-    @wp.func
-    def not_compared(value: float, n_blocks: int, n_points: int, i: int, out: wp.array(dtype=float)):
-        """A point that is not compared (point_to_compare) holds the same value in every block (every
-        shift and exposure gain)."""
-        for s in range(n_blocks):
-            out[s * n_points + i] = value
-
-    @wp.func
-    def exposed_values(
+    def compared_values(
         a: vecC,
         q: vecC,
         gains: wp.array(dtype=float),
@@ -419,14 +378,33 @@ def feature_kernels(C: int):
         stride: int,
         out: wp.array(dtype=float),
     ):
-        """The exposure term: the point's feature with the render read gains[k] times as bright is
-        gains[k] a + q (a: conv1's response to the window's rendered pixels alone, q: the bias plus the
-        rest's), compared under every shift into blocks k S .. k S + S - 1."""
+        """out[(k S + s) n_points + i] = weighted_cosine of the point's feature f = gains[k] a + q (rectified
+        with relu) with the photo's feature shifts[s] cells away from (gx, gy), plus the outline term
+        there (`rim`: rim_of's); 0 where that cell is beyond the photo's feature grid (as for an
+        unshifted point there). With the exposure term a is conv1's response to the window's rendered
+        pixels alone and q the bias plus the rest's (conv_split), so f is the render read gains[k] times
+        as bright; without it gains is (1,), a the whole response and q 0, and 1 a + 0 is a, bit for bit."""
+        grid = wp.vec4i(0, 0, obs_feat.shape[1], obs_feat.shape[0])
         for k in range(gains.shape[0]):
             f = rectified(gains[k] * a + q, relu)
-            shifted_values(
-                f, obs_feat, obs_norm, pw, gx, gy, share, shifts, n_points, i, rim, stride, k * shifts.shape[0], out
-            )
+            f_norm = wp.length(f)  # the same for every shift
+            for s in range(shifts.shape[0]):
+                hx = gx + shifts[s][0]
+                hy = gy + shifts[s][1]
+                value = float(0.0)
+                if in_box(grid, hx, hy):
+                    value = weighted_cosine(f, f_norm, obs_feat[hy, hx], obs_norm[hy, hx], pw, hx, hy, share)
+                    if rim.on != 0:
+                        d = shifts[s] * stride  # the whole silhouette moves: its outline pixel with it
+                        value += pw.outline * outline_credit(pw.edge, rim.bx + d[0], rim.by + d[1], rim.normal)
+                out[(k * shifts.shape[0] + s) * n_points + i] = value
+
+    @wp.func
+    def not_compared(value: float, n_blocks: int, n_points: int, i: int, out: wp.array(dtype=float)):
+        """A point that is not compared (point_to_compare) holds the same value in every block (every
+        shift and exposure gain)."""
+        for s in range(n_blocks):
+            out[s * n_points + i] = value
 
     @wp.func
     def conv_at(
@@ -554,14 +532,15 @@ def feature_kernels(C: int):
         rb = seen.box[c]
         share = window_share(sur, seen.mask, roff, rb, u, v, pts.ks)
         rim = rim_of(pw, seen.mask, roff, rb, u, v, pts.stride)
+        a = vecC()
+        q = vecC()
         if gains.shape[0] == 1:  # no exposure term: conv_at, the thesis's arithmetic bit for bit
-            f = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, relu, sur, exp)
-            shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, 0, out)
+            a = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, 0, sur, exp)
         else:
             a, q = conv_split(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, sur)
-            exposed_values(
-                a, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out
-            )
+        compared_values(
+            a, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out
+        )
 
     @wp.kernel(enable_backward=False, module="unique")
     def score_features(
@@ -596,15 +575,12 @@ def feature_kernels(C: int):
             f[ch] = feat[at + ch * n]
         share = window_share(sur, seen.mask, seen.pix_off[c], seen.box[c], u, v, pts.ks)
         rim = rim_of(pw, seen.mask, seen.pix_off[c], seen.box[c], u, v, pts.stride)
-        if gains.shape[0] == 1:
-            f = rectified(f, relu)
-            shifted_values(f, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, 0, out)
-        else:
-            q = vecC()
+        q = vecC()
+        if gains.shape[0] > 1:
             for ch in range(C):
                 q[ch] = feat_rest[at + ch * n]
-            exposed_values(
-                f, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out
-            )
+        compared_values(
+            f, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out
+        )
 
     return vecC, observed_features, score_points, score_features

@@ -205,21 +205,28 @@ def _random_batch(rng, H, W_, stride):
     return img, boxes, pix_off, rgb, mask, batch
 
 
-@pytest.mark.parametrize("conv", ["warp", "torch"])
-def test_shifted_scores_equal_numpy_reference(random_weights, conv):
-    """score_terms' shift: block s of kernel #2's values compares every point with the photo's feature
-    shifts[s] grid cells away (both conv forms), and the first block is the unshifted values."""
-    rng = np.random.default_rng(5)
-    H, W_, stride = 40, 52, 3
-    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, stride)
-    rows, cols = grid_shape(W_, H, 11, stride)
-    gboxes = grid_boxes(boxes, 11, stride)
+def _case(seed: int, sc: FeatureScorer, H: int = 40, W_: int = 52):
+    """_random_batch's photo and boxes with random rarity, and the photo's features, norms and maps on the
+    device for scorer sc."""
+    rng = np.random.default_rng(seed)
+    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, sc.stride)
+    rows, cols = grid_shape(W_, H, 11, sc.stride)
+    gboxes = grid_boxes(boxes, 11, sc.stride)
     rarity = rng.random((rows, cols)).astype(np.float32)
-    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv)
     image = sc.image_to_device(img)
     obs = sc.observed_features(image)
     norms = wp.array(np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32), device=DEVICE)
     pw = point_weights(wp.array(rarity, device=DEVICE))
+    return img, boxes, pix_off, rgb, mask, batch, gboxes, rarity, image, obs, norms, pw
+
+
+@pytest.mark.parametrize("conv", ["warp", "torch"])
+def test_shifted_scores_equal_numpy_reference(random_weights, conv):
+    """score_terms' shift: block s of kernel #2's values compares every point with the photo's feature
+    shifts[s] grid cells away (both conv forms), and the first block is the unshifted values."""
+    stride = 3
+    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv)
+    img, boxes, pix_off, rgb, mask, batch, gboxes, rarity, image, obs, norms, pw = _case(5, sc)
     shifts = shift_array(1, DEVICE)
     assert sorted(map(tuple, shifts.numpy().tolist())) == [(dx, dy) for dx in (-1, 0, 1) for dy in (-1, 0, 1)]
     vals, pt_off = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts)
@@ -239,17 +246,9 @@ def test_shifted_scores_equal_numpy_reference(random_weights, conv):
 def test_exposure_scores_equal_numpy_reference(random_weights, conv, surround, relu):
     """score_terms' exposure: block k S + s of kernel #2's values is the render read gains[k] times as bright,
     compared shifts[s] cells away (both conv forms; onto the photo or the fill; raw or rectified conv1)."""
-    rng = np.random.default_rng(11)
-    H, W_, stride = 40, 52, 3
-    img, boxes, pix_off, rgb, mask, batch = _random_batch(rng, H, W_, stride)
-    rows, cols = grid_shape(W_, H, 11, stride)
-    gboxes = grid_boxes(boxes, 11, stride)
-    rarity = rng.random((rows, cols)).astype(np.float32)
+    stride = 3
     sc = FeatureScorer(random_weights, DEVICE, stride, relu=relu, conv=conv, surround=surround)
-    image = sc.image_to_device(img)
-    obs = sc.observed_features(image)
-    norms = wp.array(np.linalg.norm(obs.numpy().astype(np.float64), axis=-1).astype(np.float32), device=DEVICE)
-    pw = point_weights(wp.array(rarity, device=DEVICE))
+    img, boxes, pix_off, rgb, mask, batch, gboxes, rarity, image, obs, norms, pw = _case(11, sc)
     shifts, gains = shift_array(1, DEVICE), exposure_array(1.0, DEVICE)
     assert np.allclose(gains.numpy(), [1, 2**-0.5, 2**0.5, 0.5, 2])
     vals, pt_off = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts, gains)
