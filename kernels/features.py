@@ -235,14 +235,6 @@ def rim_of(
 
 
 @wp.func
-def rendered_at(mask: wp.array(dtype=wp.uint8), roff: int, rb: wp.vec4i, x: int, y: int) -> bool:
-    """Whether the candidate's mask covers pixel (x, y) (its composite there is the render's)."""
-    if in_box(rb, x, y):
-        return mask[roff + (y - rb[1]) * rb[2] + (x - rb[0])] != wp.uint8(0)
-    return False
-
-
-@wp.func
 def composite(
     image: wp.array2d(dtype=wp.vec3),
     rgb: wp.array(dtype=wp.vec3),
@@ -309,7 +301,7 @@ def composite_crops(
         if in_box(photo, x, y):
             p = composite(image, seen.rgb, seen.mask, roff, rb, x, y, sur)
             if part != 0:
-                rendered = rendered_at(seen.mask, roff, rb, x, y)
+                rendered = on_mask(seen.mask, roff, rb, x, y)
                 if (part == 1) != rendered:
                     p = wp.vec3(0.0, 0.0, 0.0)
         out[base + col] = p[0]
@@ -466,7 +458,7 @@ def feature_kernels(C: int):
                 p = composite(image, rgb, mask, roff, rb, x, y, sur)
                 k = (dy * ks + dx) * 3
                 w = Wt[k] * p[0] + Wt[k + 1] * p[1] + Wt[k + 2] * p[2]
-                if rendered_at(mask, roff, rb, x, y):
+                if on_mask(mask, roff, rb, x, y):
                     a = a + w
                 else:
                     q = q + w

@@ -120,7 +120,7 @@ class ScoreTerms:
     def __post_init__(self) -> None:
         if not (np.isfinite(self.exposure) and 0.0 <= self.exposure <= MAX_EXPOSURE):
             raise PerchError(f"score term exposure must be 0 to {MAX_EXPOSURE} stops, got {self.exposure}")
-        if float(2.0 * self.exposure).is_integer() is False:
+        if not float(2.0 * self.exposure).is_integer():
             raise PerchError(f"score term exposure must be a whole number of half stops, got {self.exposure}")
         if self.exposure > 0.0 and self.light > 0.0:
             raise PerchError("score terms exposure and light cannot be combined: choose one")

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import sys
 from pathlib import Path
 
@@ -27,6 +28,7 @@ from perch_warp.errors import PerchError
 from perch_warp.features import load_feature_weights
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
+from perch_warp.outputs import atomic_write_text
 
 MIN_PIXELS = 50  # fewer visible rendered pixels than this: no ratio
 
@@ -111,12 +113,11 @@ def main(argv: list[str] | None = None) -> int:
             f"max {m.max():.2f}; outside [0.71, 1.41] (half a stop): {np.mean((m < 2**-0.5) | (m > 2**0.5)):.0%}"
         )
     if args.csv is not None and rows:
-        tmp = args.csv.with_suffix(args.csv.suffix + ".part")
-        with tmp.open("w", newline="") as f:
-            w = csv.DictWriter(f, fieldnames=list(rows[0]))
-            w.writeheader()
-            w.writerows(rows)
-        tmp.replace(args.csv)
+        buf = io.StringIO(newline="")
+        w = csv.DictWriter(buf, fieldnames=list(rows[0]))
+        w.writeheader()
+        w.writerows(rows)
+        atomic_write_text(args.csv, buf.getvalue())
     return 0
 
 
