@@ -315,6 +315,34 @@ def exposure_gain(exp: Exposure, mean_lum: float) -> float:
     return wp.pow(exp.ref / wp.max(mean_lum, exp.floor), exp.gamma)
 
 
+@wp.func
+def srgb_to_linear(c: float) -> float:
+    if c <= 0.04045:
+        return c / 12.92
+    return wp.pow((c + 0.055) / 1.055, 2.4)
+
+
+@wp.func
+def linear_to_srgb(x: float) -> float:
+    if x <= 0.0031308:
+        return 12.92 * x
+    return 1.055 * wp.pow(x, 1.0 / 2.4) - 0.055
+
+
+@wp.func
+def exposed(c: float, gain: float) -> float:
+    return linear_to_srgb(wp.min(gain * srgb_to_linear(c), 1.0))
+
+
+@wp.kernel(enable_backward=False)
+def read_at_exposure(rgb: wp.array(dtype=wp.vec3), gain: float, out: wp.array(dtype=wp.vec3)):
+    """Each rendered colour (sRGB in [0, 1]) as a camera exposed `gain` times brighter records it: the
+    light is linear, the sensor clips at white (the tone term, perch_warp.score_terms)."""
+    i = wp.tid()
+    c = rgb[i]
+    out[i] = wp.vec3(exposed(c[0], gain), exposed(c[1], gain), exposed(c[2], gain))
+
+
 @functools.cache
 def feature_kernels(C: int):
     """(vecC, observed_features, score_points, score_features) for C output channels."""

@@ -11,7 +11,15 @@ import warp as wp
 
 from .errors import PerchError
 from .features import FeatureWeights
-from .kernels.features import NOT_ON_MASK, Exposure, PointWeights, Surround, composite_crops, feature_kernels
+from .kernels.features import (
+    NOT_ON_MASK,
+    Exposure,
+    PointWeights,
+    Surround,
+    composite_crops,
+    feature_kernels,
+    read_at_exposure,
+)
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
 from .kernels.render import RenderedBoxes
 from .render import RenderedBatch, flat_offsets, point_layout
@@ -201,6 +209,7 @@ class FeatureScorer:
         pw: PointWeights,
         shifts: wp.array | None = None,
         gains: wp.array | None = None,
+        tone: np.ndarray | None = None,
     ) -> tuple[wp.array, wp.array]:
         """similarity x gain - offset (pw: the photo's maps, `point_weights`) at every feature-grid
         point of each candidate's box and the flat
@@ -209,43 +218,60 @@ class FeatureScorer:
         S of them; default: none) the values are S such blocks, block s comparing each point with the
         photo's feature shifts[s] grid cells away (kernels/features.py). With `gains` (exposure_array,
         G of them; default: none) the render is read at each gain in turn: G S blocks, block k S + s
-        that of gain k and shift s."""
+        that of gain k and shift s. With `tone` (score_terms.tone_gains, host floats, 1 first; T of
+        them) the rendered colours are read at each exposure, clipped at white (read_at_exposure):
+        T times those blocks, exposure j's from j G S on."""
         pts = point_layout(batch.box, gboxes, self.ks, self.stride, self.device)
-        seen = batch.as_struct()
         shifts = self.shifts(0) if shifts is None else shifts
         gains = self.gains(0.0) if gains is None else gains
+        tone = np.ones(1, np.float32) if tone is None else np.asarray(tone, np.float32)
         exposed = gains.shape[0] > 1
         if exposed and self.exposure.gamma != 0.0:
             raise PerchError("the exposure term cannot be combined with the light term")
-        # what every point is compared with, and how
-        compare = [self.surround, obs_feat, obs_norm, pw, shifts, gains]
+        if len(tone) > 1 and (exposed or self.exposure.gamma != 0.0):
+            raise PerchError("the tone term cannot be combined with the exposure or light term")
+        n_blocks = pts.n_points * shifts.shape[0] * gains.shape[0]
         with wp.ScopedDevice(self.device):
-            out = wp.empty(pts.n_points * shifts.shape[0] * gains.shape[0], dtype=float)
-            if self.conv == "torch":
-                bufs = self._take_buffers()
-                try:
-                    if exposed:  # conv1 is linear: the rendered pixels' response apart from the rest's
-                        feat = self._torch_features(image, seen, gboxes, bufs, part=1)
-                        rest = self._torch_features(image, seen, gboxes, bufs, part=2)
-                    else:
-                        feat = self._torch_features(image, seen, gboxes, bufs)
-                        rest = self._dummy_feat
-                    wp.launch(
-                        self.k_score_features,
-                        dim=pts.n_points,
-                        inputs=[feat, seen, pts, self.relu, *compare, rest],
-                        outputs=[out],
-                    )
-                finally:
-                    self._buffers.put(bufs)  # the same stream reads it before a later batch writes it
-            else:
+            out = wp.empty(n_blocks * len(tone), dtype=float)
+            for j, g in enumerate(tone.tolist()):
+                seen = batch.as_struct()
+                if g != 1.0:  # the render as it is for 1: the plain score's arithmetic, bit for bit
+                    seen.rgb = wp.empty_like(batch.rgb)
+                    wp.launch(read_at_exposure, dim=batch.rgb.shape[0], inputs=[batch.rgb, g], outputs=[seen.rgb])
+                part = out if len(tone) == 1 else out[j * n_blocks : (j + 1) * n_blocks]
+                self._score_into(image, seen, gboxes, pts, [self.surround, obs_feat, obs_norm, pw, shifts, gains], part)
+        return out, pts.pt_off
+
+    def _score_into(
+        self, image: wp.array, seen: RenderedBoxes, gboxes: np.ndarray, pts, compare: list, out: wp.array
+    ) -> None:
+        """score_points' blocks for one reading of the render (seen), into out; `compare`: what every
+        point is compared with, and how (kernel #2's trailing inputs)."""
+        exposed = compare[-1].shape[0] > 1
+        if self.conv == "torch":
+            bufs = self._take_buffers()
+            try:
+                if exposed:  # conv1 is linear: the rendered pixels' response apart from the rest's
+                    feat = self._torch_features(image, seen, gboxes, bufs, part=1)
+                    rest = self._torch_features(image, seen, gboxes, bufs, part=2)
+                else:
+                    feat = self._torch_features(image, seen, gboxes, bufs)
+                    rest = self._dummy_feat
                 wp.launch(
-                    self.k_score,
+                    self.k_score_features,
                     dim=pts.n_points,
-                    inputs=[image, seen, pts, self.Wt, self.bias, self.relu, self.exposure, *compare],
+                    inputs=[feat, seen, pts, self.relu, *compare, rest],
                     outputs=[out],
                 )
-        return out, pts.pt_off
+            finally:
+                self._buffers.put(bufs)  # the same stream reads it before a later batch writes it
+        else:
+            wp.launch(
+                self.k_score,
+                dim=pts.n_points,
+                inputs=[image, seen, pts, self.Wt, self.bias, self.relu, self.exposure, *compare],
+                outputs=[out],
+            )
 
     def _torch_features(
         self, image: wp.array, seen: RenderedBoxes, gboxes: np.ndarray, bufs: dict, part: int = 0

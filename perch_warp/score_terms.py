@@ -63,6 +63,23 @@ Terms (each off in `thesis`):
   window). conv1 is linear, so conv1(g render + rest) = g a + q with a the response to the rendered
   pixels alone and q the bias plus the rest's: one split convolution serves every gain. Every
   gain's value is a cosine times the rarity, so the bound holds as it is. Not with ``light``.
+- ``tone`` e: the render read through a camera's exposure, highlights clipped (issue 17 (c)).
+  Under a strong light a camera burns a lit face out to white and the texture's print vanishes
+  from it (the synthetic development set's harsh light: a median 18 % of a target's visible pixels
+  are 255 in some channel, 68 % of one gelatin box's; under normal light a median 0 %), which no
+  gain of the unclipped ``exposure`` term reproduces, since
+  conv1 is linear and a cosine ignores scale. With e > 0 (whole stops, up to MAX_TONE) a candidate
+  is also scored with every rendered colour c read as srgb(min(1, 2^k lin(c))) for k = 1 .. e
+  (lin, srgb: the sRGB transfer functions; the photo's pixels in an edge window stay as they
+  are), and its score is the best of those top-α means, k = 0 (the render as it is) included:
+  the whole silhouette at one exposure, as with ``exposure``. Clipping is not linear, so each
+  exposure is convolved on its own (e + 1 times the features). Every value is still a cosine
+  times the rarity, so the bound holds as it is. Not with ``exposure`` or ``light``.
+- ``smooth`` σ: conv1's filters low-passed (a Gaussian of σ pixels, perch_warp.features.smoothed), for
+  the photo's features and the candidates' alike: conv1 then reads every window as if blurred, so a
+  photo's pixel noise (the synthetic set's harsh light leaves speckle on lit objects) and texture
+  finer than the camera resolves, which the render has and the photo lacks, move neither. The
+  weights change, not the formula, so the bound holds as it is.
 - ``shift`` r: the grid stage's tolerance of a misaligned grid (issue 17 (g)). A grid pose
   is up to half a step from the truth, and a small textured object's score peak is narrower
   than that; so a grid candidate is scored against the photo displaced by every (dx, dy) of
@@ -98,6 +115,8 @@ TEXTURES = ("bilinear", "mip")
 RARITY_MODES = ("max", "total")
 MAX_SHIFT = 3  # (2 r + 1)^2 = 49 comparisons per point at most
 MAX_EXPOSURE = 2.0  # stops: 9 gains, 1/4 to 4
+MAX_TONE = 3  # whole stops brighter: 4 exposures, 1 to 8
+MAX_SMOOTH = 3.0  # pixels: wider and an 11 x 11 filter is little but its mean
 
 
 @dataclass(frozen=True)
@@ -116,8 +135,16 @@ class ScoreTerms:
     light: float = 0.0
     rectified: float = 0.0
     exposure: float = 0.0
+    tone: int = 0
+    smooth: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.smooth) and 0.0 <= self.smooth <= MAX_SMOOTH):
+            raise PerchError(f"score term smooth must be 0 to {MAX_SMOOTH} pixels, got {self.smooth}")
+        if not 0 <= self.tone <= MAX_TONE:
+            raise PerchError(f"score term tone must be 0 to {MAX_TONE} whole stops, got {self.tone}")
+        if self.tone > 0 and (self.exposure > 0.0 or self.light > 0.0):
+            raise PerchError("score term tone cannot be combined with exposure or light: choose one")
         if not (np.isfinite(self.exposure) and 0.0 <= self.exposure <= MAX_EXPOSURE):
             raise PerchError(f"score term exposure must be 0 to {MAX_EXPOSURE} stops, got {self.exposure}")
         if not float(2.0 * self.exposure).is_integer():
@@ -200,6 +227,11 @@ def exposure_gains(stops: float) -> np.ndarray:
     n = int(round(2.0 * stops))
     ks = [0] + [k for j in range(1, n + 1) for k in (-j, j)]
     return np.array([2.0 ** (k / 2.0) for k in ks], dtype=np.float32)
+
+
+def tone_gains(stops: int) -> np.ndarray:
+    """The tone term's exposures (float32, 1 first): 2^k in linear light for k = 0 .. stops."""
+    return np.array([2.0**k for k in range(int(stops) + 1)], dtype=np.float32)
 
 
 def likeness_to_commonest(features: np.ndarray, labels: np.ndarray) -> np.ndarray:

@@ -8,7 +8,7 @@ from _device import DEVICE
 from perch_warp.kernels.features import NOT_ON_MASK
 
 from perch_warp.errors import PerchError
-from perch_warp.features import PREPROCESSING, FeatureWeights, load_npz
+from perch_warp.features import PREPROCESSING, FeatureWeights, load_npz, smoothed
 from perch_warp.outline import edge_ceiling, edge_map
 from perch_warp.render import RenderedBatch
 from perch_warp.score import (
@@ -22,7 +22,7 @@ from perch_warp.score import (
     top_alpha_mean,
     top_alpha_mean_device,
 )
-from perch_warp.score_terms import exposure_gains
+from perch_warp.score_terms import exposure_gains, tone_gains
 
 
 def _torch_features(image_u8: np.ndarray, w: FeatureWeights, stride: int) -> np.ndarray:
@@ -63,6 +63,30 @@ def test_caffe_preprocessing_is_rgb255_minus_mean(caffe_weights):
     assert np.allclose(got[0, 0], ref, rtol=1e-4, atol=1e-2)
 
 
+def test_smoothed_weights_equal_a_2d_gaussian_reference(random_weights):
+    """score_terms' smooth: every filter plane convolved with the 2-D Gaussian, kept at k x k; a centred
+    delta filter becomes the Gaussian itself, i.e. conv1 reads the window blurred."""
+    assert smoothed(random_weights, 0.0) is random_weights
+    sigma, k = 1.3, random_weights.kernel_size
+    got = smoothed(random_weights, sigma)
+    x = np.arange(-(k - 1), k)
+    g2 = np.exp(-0.5 * (x[:, None] ** 2 + x[None, :] ** 2) / sigma**2)
+    g2 /= g2.sum()
+    W = random_weights.weight.astype(np.float64)
+    ref = np.zeros_like(W)
+    for i in range(k):
+        for j in range(k):
+            # tap (i, j) gathers every tap (a, b) of the plane, weighted by the Gaussian at their offset
+            ref[:, :, i, j] = (W * g2[i - np.arange(k)[:, None] + k - 1, j - np.arange(k)[None, :] + k - 1]).sum((2, 3))
+    assert np.abs(got.weight - ref).max() < 1e-5 * np.abs(ref).max()
+    assert np.array_equal(got.bias, random_weights.bias) and "low-passed" in got.source
+    delta = np.zeros((1, 3, k, k), np.float32)
+    delta[0, 1, k // 2, k // 2] = 1.0
+    plane = smoothed(FeatureWeights(delta, np.zeros(1, np.float32), (0, 0, 0), (1, 1, 1), "delta"), sigma).weight
+    assert np.allclose(plane[0, 1], g2[k // 2 : k // 2 + k, k // 2 : k // 2 + k], atol=1e-7)
+    assert np.abs(plane[0, [0, 2]]).max() == 0.0
+
+
 def _numpy_scores(
     img,
     rgb,
@@ -83,6 +107,7 @@ def _numpy_scores(
     relu=False,
     rectified=0.0,
     render_gain=1.0,
+    render_tone=1.0,
 ):
     """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
     in float64, cosine with the photo's feature `shift` = (dx, dy) grid cells away, times rarity there,
@@ -91,7 +116,8 @@ def _numpy_scores(
     along +x, -x, +y, -y (b: the nearest, the first direction on a tie; n: the directions' sum weighted
     by (stride + 1 - t) / stride). With `relu` both features are rectified (AlexNet's ReLU) before the cosine,
     which is 0 where either vanishes; with `rectified` b the cosine is (1 - b) cos + b (the rectified
-    features' cosine). `render_gain` g: the rendered colours read g times as bright (the exposure term)."""
+    features' cosine). `render_gain` g: the rendered colours read g times as bright (the exposure term);
+    `render_tone` t: each rendered sRGB colour c read as srgb(min(1, t lin(c))) (the tone term)."""
     offset = np.zeros_like(rarity) if offset is None else offset
     norm = (img.astype(np.float64) / 255.0 - np.array(w.mean)) / np.array(w.std)
     W = w.weight.astype(np.float64)
@@ -101,6 +127,8 @@ def _numpy_scores(
         x0, y0, bw, bh = boxes[c]
         gx0, gy0, gw, gh = gboxes[c]
         crgb = render_gain * rgb[pix_off[c] : pix_off[c + 1]].reshape(bh, bw, 3).astype(np.float64)
+        if render_tone != 1.0:
+            crgb = _srgb_exposed(crgb, render_tone)
         cmask = mask[pix_off[c] : pix_off[c + 1]].reshape(bh, bw).astype(bool)
         comp = img.astype(np.float64) / 255.0
         if fill:
@@ -154,6 +182,13 @@ def _numpy_scores(
                     value += outline * _numpy_outline(cmask, x0, y0, u, v, stride, edge, shift)
                 out.append(value)
     return np.array(out)
+
+
+def _srgb_exposed(c, gain):
+    """sRGB colours c in [0, 1] as a camera exposed `gain` times brighter records them (IEC 61966-2-1)."""
+    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+    x = np.minimum(gain * lin, 1.0)
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
 def _lit(W, w: FeatureWeights, window01, gamma, floor=0.1):
@@ -263,6 +298,42 @@ def test_exposure_scores_equal_numpy_reference(random_weights, conv, surround, r
             off = ref == NOT_ON_MASK
             assert np.array_equal(got[k, s] == NOT_ON_MASK, off)
             assert np.abs(got[k, s][~off] - ref[~off]).max() < 1e-4, (g, d)
+
+
+@pytest.mark.parametrize("conv", ["warp", "torch"])
+@pytest.mark.parametrize("surround", ["photo", "fill"])
+def test_tone_scores_equal_numpy_reference(random_weights, conv, surround):
+    """score_terms' tone: block j S + s of kernel #2's values is the render read at exposure tone[j] with
+    its highlights clipped at white, compared shifts[s] cells away (both conv forms, onto the photo or
+    the fill); exposure 1 first, the plain score's values bit for bit."""
+    stride = 3
+    sc = FeatureScorer(random_weights, DEVICE, stride, conv=conv, surround=surround)
+    img, boxes, pix_off, rgb, mask, batch, gboxes, rarity, image, obs, norms, pw = _case(13, sc)
+    shifts, tone = shift_array(1, DEVICE), tone_gains(2)
+    assert np.array_equal(tone, [1, 2, 4])
+    # the clipping is there to test: at 4x, a third of the random colours' channels burn out
+    assert 0.2 < (_srgb_exposed(rgb.astype(np.float64), 4.0) > 1.0 - 1e-9).mean() < 0.6
+    vals, pt_off = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts, None, tone)
+    plain, _ = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts)
+    n = int(pt_off.numpy()[-1])
+    got = vals.numpy().reshape(3, 9, n)
+    assert np.array_equal(got[0], plain.numpy().reshape(9, n))
+    for j, t in enumerate(tone.tolist()):
+        for s, d in enumerate(shifts.numpy().tolist()):
+            ref = _numpy_scores(
+                img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity,
+                fill=surround == "fill", shift=tuple(d), render_tone=t,
+            )  # fmt: skip
+            off = ref == NOT_ON_MASK
+            assert np.array_equal(got[j, s] == NOT_ON_MASK, off)
+            assert np.abs(got[j, s][~off] - ref[~off]).max() < 1e-4, (t, d)
+
+
+def test_tone_refuses_exposure_and_light(random_weights):
+    sc = FeatureScorer(random_weights, DEVICE, 3)
+    img, boxes, pix_off, rgb, mask, batch, gboxes, rarity, image, obs, norms, pw = _case(13, sc)
+    with pytest.raises(PerchError, match="tone term"):
+        sc.score_points(image, batch, gboxes, obs, norms, pw, None, exposure_array(1.0, DEVICE), tone_gains(1))
 
 
 def test_exposure_gains_are_half_stops():

@@ -48,6 +48,14 @@ def test_names_and_terms_parse():
         ("exposure=0.3", "half stops"),
         ("exposure=nan", "exposure must be 0 to"),
         ("exposure=1,light=0.5", "cannot be combined"),
+        ("tone=4", "tone must be 0 to"),
+        ("tone=-1", "tone must be 0 to"),
+        ("tone=1.5", "tone needs a int"),
+        ("tone=1,exposure=0.5", "cannot be combined"),
+        ("tone=1,light=0.5", "cannot be combined"),
+        ("smooth=4", "smooth must be 0 to"),
+        ("smooth=-1", "smooth must be 0 to"),
+        ("smooth=nan", "smooth must be 0 to"),
     ],
 )
 def test_bad_terms_name_the_culprit(spec, culprit):

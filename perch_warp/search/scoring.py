@@ -39,7 +39,7 @@ from ..score import (
     point_weights,
     top_alpha_mean_device,
 )
-from ..score_terms import ScoreTerms, background_offset
+from ..score_terms import ScoreTerms, background_offset, tone_gains
 from ..search_space import SearchSpace
 from ..table import RestingPose, Table, model_to_camera
 
@@ -315,7 +315,11 @@ class ScoringService:
         stats.rays += int(sizes.sum())
         scorer = self.backends.scorer
         work = functools.partial(
-            self._score_batch, c, scorer.shifts(self.terms.shift), scorer.gains(self.terms.exposure)
+            self._score_batch,
+            c,
+            scorer.shifts(self.terms.shift),
+            scorer.gains(self.terms.exposure),
+            tone_gains(self.terms.tone),
         )
         self._batched(work, idx, sizes, out, stats, self.bar if progress else None)
         if c.prior is not None:
@@ -332,10 +336,10 @@ class ScoringService:
             out[idx] += c.prior[idx]
 
     def _score_batch(
-        self, c: Candidates, shifts: wp.array, gains: wp.array, idx
+        self, c: Candidates, shifts: wp.array, gains: wp.array, tone: np.ndarray, idx
     ) -> tuple[np.ndarray, dict[str, float]]:
         """Candidates `idx`: render (kernel #1) -> features x similarity x rarity (kernel #2, under each
-        of `shifts` and exposure `gains`) -> top-α mean (the best over shifts and gains); their scores on
+        of `shifts`, exposure `gains` and `tone` exposures) -> top-α mean (the best of them); their scores on
         the host and the seconds each stage took."""
         laps: dict[str, float] = {}
         photo, scorer = self.photo, self.backends.scorer
@@ -343,11 +347,11 @@ class ScoringService:
         batch = self.renderer.render(self.camera, c.R[idx], c.tr[idx], c.boxes[idx])
         t = self.lap("render", t, laps)
         vals, pt_off = scorer.score_points(
-            photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights, shifts, gains
+            photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights, shifts, gains, tone
         )
         t = self.lap("features_score", t, laps)
         # The same kernel on every device, so CPU and GPU runs take the same path to a score.
-        n_blocks = shifts.shape[0] * gains.shape[0]
+        n_blocks = shifts.shape[0] * gains.shape[0] * len(tone)
         batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha, self.terms.shrink, n_blocks)
         t = self.lap("reduction", t, laps)
         # One float per candidate (and shift and gain) crosses to the host, not every feature point.
