@@ -26,7 +26,7 @@ from .camera import Camera
 from .confidence import Confidence, grid_confidence, yaw_differs
 from .config import SEARCHES, EngineConfig
 from .errors import PerchError
-from .features import FeatureWeights
+from .features import FeatureWeights, smoothed
 from .image import check_rgb
 from .mesh import ObjectMesh
 from .peaks import top_location_candidates
@@ -93,7 +93,7 @@ class Engine:
         self.renderer_for(self.default_renderer)  # built now: BVH construction is not a search stage's
         conv = self.config.conv if self.config.conv != "auto" else auto_conv(self.device)
         self.scorer = FeatureScorer(
-            weights,
+            smoothed(weights, self.terms.smooth),
             self.device,
             self.config.stride,
             self.config.relu,
