@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 from _device import DEVICE
 from _tools import load_tool
+from PIL import Image
 
 from perch_warp import bop
 from perch_warp.demo import demo_scene
@@ -62,6 +63,11 @@ def test_ratio_is_the_photos_gain_over_the_visible_render(dataset, tmp_path, cap
     row = dict(zip(rows[0].split(","), rows[1].split(","), strict=True))
     got = np.array([float(row[f"ratio_{c}"]) for c in "rgb"])
     assert np.allclose(got, GAIN, rtol=0.02), got  # 8-bit rounding of the photo only
+    # the share at white, on the visible pixels only: the hidden half is all white and must not count
+    photo = np.asarray(Image.open(dataset / "test" / "000001" / "rgb" / "000001.png"))
+    visib = np.asarray(Image.open(dataset / "test" / "000001" / "mask_visib" / "000001_000000.png")) > 0
+    clipped = (photo[visib] == 255).any(axis=1).mean()
+    assert 0.0 < clipped < 0.5 and np.isclose(float(row["clipped"]), clipped), (row["clipped"], clipped)
     assert "1 targets" in capsys.readouterr().out
 
 

@@ -7,8 +7,10 @@ For every ground-truth instance: the object rendered at its ground-truth pose (t
 the search renders it), and on the pixels that both the render and the instance's visible mask
 (mask_visib/; with --whole-render, where it is absent, the render alone) cover, the photo's mean R, G,
 B over the render's. Far from 1, the render and the photo disagree in brightness before any texture
-is compared. Prints one line per target with its lighting label, and the spread over all targets. A
-diagnostic that reads the ground truth: never a search setting. Exit 1 on bad input.
+is compared. `clipped`: the share of those pixels that the photo holds at white (255) in some channel,
+where a camera burnt the texture out (the tone term's premise). Prints one line per target with its
+lighting label, and the spread over all targets. A diagnostic that reads the ground truth: never a
+search setting. Exit 1 on bad input.
 """
 
 from __future__ import annotations
@@ -63,6 +65,7 @@ def ratios(args: argparse.Namespace) -> list[dict]:
             if both.sum() < MIN_PIXELS:
                 continue
             ratio = image[both].mean(0) / np.maximum(rgb[both].astype(np.float64).mean(0), 1e-3)
+            clipped = float((image[both] >= 1.0).any(axis=1).mean())
             rows.append(
                 {
                     "scene_id": t.scene_id,
@@ -75,6 +78,7 @@ def ratios(args: argparse.Namespace) -> list[dict]:
                     "ratio_g": ratio[1],
                     "ratio_b": ratio[2],
                     "ratio": float(ratio.mean()),
+                    "clipped": clipped,
                 }
             )
     return rows
@@ -104,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
         print(
             f"{r['scene_id']}/{r['im_id']}/{r['inst']} obj {r['obj_id']:2d} {r['lighting']:6s} "
             f"visible {r['visib_fract'] if r['visib_fract'] is not None else float('nan'):.2f}  photo/render "
-            f"R {r['ratio_r']:.2f} G {r['ratio_g']:.2f} B {r['ratio_b']:.2f}"
+            f"R {r['ratio_r']:.2f} G {r['ratio_g']:.2f} B {r['ratio_b']:.2f}  clipped {r['clipped']:.0%}"
         )
     if rows:
         m = np.array([r["ratio"] for r in rows])
@@ -112,6 +116,12 @@ def main(argv: list[str] | None = None) -> int:
             f"{len(m)} targets: photo/render brightness min {m.min():.2f}, median {np.median(m):.2f}, "
             f"max {m.max():.2f}; outside [0.71, 1.41] (half a stop): {np.mean((m < 2**-0.5) | (m > 2**0.5)):.0%}"
         )
+        for label in sorted({r["lighting"] for r in rows}):
+            c = np.array([r["clipped"] for r in rows if r["lighting"] == label])
+            print(
+                f"  {label or 'unlabelled'}: {len(c)} targets, share of visible pixels clipped at white: "
+                f"median {np.median(c):.0%}, max {c.max():.0%}, above 10 % for {int((c > 0.1).sum())}"
+            )
     if args.csv is not None and rows:
         buf = io.StringIO(newline="")
         w = csv.DictWriter(buf, fieldnames=list(rows[0]))
