@@ -14,6 +14,7 @@ from .features import FeatureWeights
 from .kernels.features import (
     NOT_ON_MASK,
     Exposure,
+    PointLayout,
     PointWeights,
     Surround,
     composite_crops,
@@ -239,15 +240,23 @@ class FeatureScorer:
                     seen.rgb = wp.empty_like(batch.rgb)
                     wp.launch(read_at_exposure, dim=batch.rgb.shape[0], inputs=[batch.rgb, g], outputs=[seen.rgb])
                 part = out if len(tone) == 1 else out[j * n_blocks : (j + 1) * n_blocks]
-                self._score_into(image, seen, gboxes, pts, [self.surround, obs_feat, obs_norm, pw, shifts, gains], part)
+                compare = [self.surround, obs_feat, obs_norm, pw, shifts, gains]
+                self._score_into(image, seen, gboxes, pts, compare, exposed, part)
         return out, pts.pt_off
 
     def _score_into(
-        self, image: wp.array, seen: RenderedBoxes, gboxes: np.ndarray, pts, compare: list, out: wp.array
+        self,
+        image: wp.array,
+        seen: RenderedBoxes,
+        gboxes: np.ndarray,
+        pts: PointLayout,
+        compare: list,
+        exposed: bool,
+        out: wp.array,
     ) -> None:
         """score_points' blocks for one reading of the render (seen), into out; `compare`: what every
-        point is compared with, and how (kernel #2's trailing inputs)."""
-        exposed = compare[-1].shape[0] > 1
+        point is compared with, and how (kernel #2's trailing inputs); `exposed`: with the exposure
+        term's gains (conv1's response split in two)."""
         if self.conv == "torch":
             bufs = self._take_buffers()
             try:
