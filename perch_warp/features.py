@@ -20,6 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from scipy import ndimage
 
 from .errors import PerchError
 from .paths import shared_file
@@ -72,28 +73,19 @@ class FeatureWeights:
         return np.ascontiguousarray(Wt, np.float32), b.astype(np.float32)
 
 
-def gaussian_taps(sigma_px: float, radius: int) -> np.ndarray:
-    """(2 radius + 1,) float64 Gaussian of sigma_px pixels, summing to 1."""
-    x = np.arange(-radius, radius + 1, dtype=np.float64)
-    g = np.exp(-0.5 * (x / sigma_px) ** 2)
-    return g / g.sum()
-
-
 def smoothed(w: FeatureWeights, sigma_px: float) -> FeatureWeights:
     """w with every filter low-passed: each (output, input channel) k x k plane convolved with a
-    separable Gaussian of sigma_px pixels, kept at k x k (taps beyond it dropped), the bias as it is
-    (the score term `smooth`, perch_warp.score_terms). conv1 with these reads a window as conv1 reads
-    it blurred, so pixel noise and texture finer than sigma no longer move the features."""
+    Gaussian of sigma_px pixels, kept at k x k (zero beyond it, the Gaussian's taps out to k - 1), the
+    bias as it is (the score term `smooth`, perch_warp.score_terms). conv1 with these reads a window as
+    conv1 reads it blurred, so pixel noise and texture finer than sigma no longer move the features."""
     if sigma_px <= 0.0:
         return w
     k = w.kernel_size
-    g = gaussian_taps(sigma_px, k - 1)
-    W = w.weight.astype(np.float64)
-    # full 1-D convolutions along x then y, cropped back to the centre k taps ('same' size)
-    along_x = np.apply_along_axis(lambda r: np.convolve(r, g, mode="full")[k - 1 : 2 * k - 1], 3, W)
-    both = np.apply_along_axis(lambda c: np.convolve(c, g, mode="full")[k - 1 : 2 * k - 1], 2, along_x)
+    planes = ndimage.gaussian_filter(
+        w.weight.astype(np.float64), (0.0, 0.0, sigma_px, sigma_px), mode="constant", truncate=(k - 1) / sigma_px
+    )
     return dataclasses.replace(
-        w, weight=both.astype(np.float32), source=f"{w.source}, low-passed (Gaussian sigma {sigma_px} px)"
+        w, weight=planes.astype(np.float32), source=f"{w.source}, low-passed (Gaussian sigma {sigma_px} px)"
     )
 
 

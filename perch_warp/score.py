@@ -232,6 +232,8 @@ class FeatureScorer:
         if len(tone) > 1 and (exposed or self.exposure.gamma != 0.0):
             raise PerchError("the tone term cannot be combined with the exposure or light term")
         n_blocks = pts.n_points * shifts.shape[0] * gains.shape[0]
+        # what every point is compared with, and how
+        compare = [self.surround, obs_feat, obs_norm, pw, shifts, gains]
         with wp.ScopedDevice(self.device):
             out = wp.empty(n_blocks * len(tone), dtype=float)
             for j, g in enumerate(tone.tolist()):
@@ -239,9 +241,7 @@ class FeatureScorer:
                 if g != 1.0:  # the render as it is for 1: the plain score's arithmetic, bit for bit
                     seen.rgb = wp.empty_like(batch.rgb)
                     wp.launch(read_at_exposure, dim=batch.rgb.shape[0], inputs=[batch.rgb, g], outputs=[seen.rgb])
-                part = out if len(tone) == 1 else out[j * n_blocks : (j + 1) * n_blocks]
-                compare = [self.surround, obs_feat, obs_norm, pw, shifts, gains]
-                self._score_into(image, seen, gboxes, pts, compare, exposed, part)
+                self._score_into(image, seen, gboxes, pts, compare, exposed, out[j * n_blocks : (j + 1) * n_blocks])
         return out, pts.pt_off
 
     def _score_into(
