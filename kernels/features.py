@@ -43,7 +43,7 @@ import functools
 
 import warp as wp
 
-from .render import RenderedBoxes, find_candidate
+from .render import RenderedBoxes, find_candidate, linear_to_srgb, srgb_to_linear
 
 # Marks feature points that are not on the candidate's mask; far below any score.
 NOT_ON_MASK = -1.0e30
@@ -313,20 +313,6 @@ def composite_crops(
 def exposure_gain(exp: Exposure, mean_lum: float) -> float:
     """The factor a window of mean brightness mean_lum is scaled by (Exposure)."""
     return wp.pow(exp.ref / wp.max(mean_lum, exp.floor), exp.gamma)
-
-
-@wp.func
-def srgb_to_linear(c: float) -> float:
-    if c <= 0.04045:
-        return c / 12.92
-    return wp.pow((c + 0.055) / 1.055, 2.4)
-
-
-@wp.func
-def linear_to_srgb(x: float) -> float:
-    if x <= 0.0031308:
-        return 12.92 * x
-    return 1.055 * wp.pow(x, 1.0 / 2.4) - 0.055
 
 
 @wp.func

@@ -16,7 +16,10 @@ from .features import PointLayout
 from .render import (
     MeshLook,
     PixelRays,
+    Shading,
     box_pixel,
+    light_factor,
+    lit,
     pixel_ray_m,
     sample_mip,
     sample_texture,
@@ -263,14 +266,17 @@ def locate_hits(
     pix_off: wp.array(dtype=wp.int32),
     n_cand: int,
     key: wp.array(dtype=wp.int64),
+    shading: Shading,
     out_uv: wp.array(dtype=wp.vec2),
     out_lod: wp.array(dtype=float),
+    out_light: wp.array(dtype=float),
     out_rgb: wp.array(dtype=wp.vec3),
     out_mask: wp.array(dtype=wp.uint8),
 ):
     """Pixel i: its nearest face's hit again (the same test, so the same barycentrics as in the
     search), and there the texture coordinates (and with mip-mapping the mip level, as kernel #1
-    computes it), or the vertex colour of an untextured mesh."""
+    computes it) and, when shaded, the light's factor (Shading), or the lit vertex colour of an
+    untextured mesh."""
     i = wp.tid()
     k = key[i]
     out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)
@@ -288,12 +294,15 @@ def locate_hits(
         points[look.indices[f * 3 + 2]],
     )
     out_mask[i] = wp.uint8(1)
+    light = light_factor(shading, look.indices, f, h[2], h[3])
     if look.use_texture != 0:
         out_uv[i] = surface_uv(look.indices, look.uvs, f, h[2], h[3])
         if look.mip_levels > 0:
             out_lod[i] = texture_lod(look, f, h[1], ray, wp.sqrt(rays.fx * rays.fy))
+        if shading.strength != 0.0:
+            out_light[i] = light
     else:
-        out_rgb[i] = vertex_color(look.indices, look.colors, f, h[2], h[3])
+        out_rgb[i] = lit(vertex_color(look.indices, look.colors, f, h[2], h[3]), light)
 
 
 @wp.kernel(enable_backward=False)
@@ -301,15 +310,22 @@ def sample_hits(
     look: MeshLook,
     uv: wp.array(dtype=wp.vec2),
     lod: wp.array(dtype=float),
+    light: wp.array(dtype=float),
+    shaded: int,
     mask: wp.array(dtype=wp.uint8),
     out_rgb: wp.array(dtype=wp.vec3),
 ):
-    """Pixel i: the texture at its coordinates (at its mip level with mip-mapping). A pass of its
+    """Pixel i: the texture at its coordinates (at its mip level with mip-mapping), lit by its light
+    factor when `shaded` (locate_hits wrote it). A pass of its
     own because texture reads miss the cache: with the addresses known up front, a CPU overlaps the
     misses of many pixels."""
     i = wp.tid()
     if mask[i] != wp.uint8(0):
+        rgb = wp.vec3()
         if look.mip_levels > 0:
-            out_rgb[i] = sample_mip(look, uv[i], lod[i])
+            rgb = sample_mip(look, uv[i], lod[i])
         else:
-            out_rgb[i] = sample_texture(look.texture, uv[i])
+            rgb = sample_texture(look.texture, uv[i])
+        if shaded != 0:
+            rgb = lit(rgb, light[i])
+        out_rgb[i] = rgb

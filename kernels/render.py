@@ -135,6 +135,54 @@ def sample_mip(look: MeshLook, uv: wp.vec2, lod: float) -> wp.vec3:
     return a
 
 
+@wp.func
+def srgb_to_linear(c: float) -> float:
+    if c <= 0.04045:
+        return c / 12.92
+    return wp.pow((c + 0.055) / 1.055, 2.4)
+
+
+@wp.func
+def linear_to_srgb(x: float) -> float:
+    if x <= 0.0031308:
+        return 12.92 * x
+    return 1.055 * wp.pow(x, 1.0 / 2.4) - 0.055
+
+
+@wp.struct
+class Shading:
+    """Lambert shading of the render (score term shade=s, perch_warp.score_terms): a hit's colour, in
+    linear light, times 1 - s + s max(0, n . l), with n the mesh's vertex normals (normals, model frame)
+    interpolated at the hit and l the unit direction towards the light (light_m, model frame).
+    strength 0: the colour as it is, as in the thesis (normals may then be a placeholder)."""
+
+    normals: wp.array(dtype=wp.vec3)
+    light_m: wp.vec3
+    strength: float
+
+
+@wp.func
+def light_factor(sh: Shading, indices: wp.array(dtype=wp.int32), face: int, bu: float, bv: float) -> float:
+    """What the light makes of a hit at barycentric (bu, bv) of `face` (Shading); 1 when unshaded."""
+    if sh.strength == 0.0:
+        return 1.0
+    n = vertex_color(indices, sh.normals, face, bu, bv)  # the same barycentric blend as a vertex colour
+    lit = wp.max(wp.dot(wp.normalize(n), sh.light_m), 0.0)
+    return 1.0 - sh.strength + sh.strength * lit
+
+
+@wp.func
+def lit(c: wp.vec3, f: float) -> wp.vec3:
+    """sRGB colour c with its linear light scaled by f."""
+    if f == 1.0:
+        return c
+    return wp.vec3(
+        linear_to_srgb(f * srgb_to_linear(c[0])),
+        linear_to_srgb(f * srgb_to_linear(c[1])),
+        linear_to_srgb(f * srgb_to_linear(c[2])),
+    )
+
+
 @wp.struct
 class PixelRays:
     """A batch's pixel rays in the model frame: the pinhole intrinsics (pixels) and, per candidate c,
@@ -176,6 +224,7 @@ def render_boxes(
     box: wp.array(dtype=wp.vec4i),
     pix_off: wp.array(dtype=wp.int32),
     n_cand: int,
+    shading: Shading,
     out_rgb: wp.array(dtype=wp.vec3),
     out_mask: wp.array(dtype=wp.uint8),
 ):
@@ -184,12 +233,14 @@ def render_boxes(
     ray = pixel_ray_m(rays, c, u, v)  # its camera-frame z is 1, so q.t is the hit's depth (m)
     q = wp.mesh_query_ray(mesh, rays.origin_m[c], ray, 1.0e6)
     if q.result:
+        rgb = wp.vec3()
         if look.mip_levels > 0 and look.use_texture != 0:
             uv = surface_uv(look.indices, look.uvs, q.face, q.u, q.v)
             f_px = wp.sqrt(rays.fx * rays.fy)
-            out_rgb[i] = sample_mip(look, uv, texture_lod(look, q.face, q.t, ray, f_px))
+            rgb = sample_mip(look, uv, texture_lod(look, q.face, q.t, ray, f_px))
         else:
-            out_rgb[i] = surface_color(look, q.face, q.u, q.v)
+            rgb = surface_color(look, q.face, q.u, q.v)
+        out_rgb[i] = lit(rgb, light_factor(shading, look.indices, q.face, q.u, q.v))
         out_mask[i] = wp.uint8(1)
     else:
         out_rgb[i] = wp.vec3(0.0, 0.0, 0.0)

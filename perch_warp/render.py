@@ -1,7 +1,8 @@
 """Rendering candidates: project their boxes, pack them, and ray-cast with kernel #1.
 
 No lighting, as in the thesis: a pixel's colour is the texture (or vertex colour)
-at the first surface its ray meets. Two ways to find that surface, with the same rays and
+at the first surface its ray meets; the score term shade=s (perch_warp.score_terms) lights it from
+one direction (kernels/render.py: Shading). Two ways to find that surface, with the same rays and
 the same ray-triangle test: "bvh" queries Warp's mesh BVH per ray (kernels/render.py),
 "raster" lets each triangle test the rays its projection covers (kernels/raster.py),
 which is faster on a CPU (docs/performance.md, "Raster form of kernel #1").
@@ -28,7 +29,7 @@ from .kernels import bound as bound_kernels
 from .kernels import boxes as box_kernels
 from .kernels import raster as raster_kernels
 from .kernels.features import PointLayout
-from .kernels.render import MeshLook, PixelRays, RenderedBoxes, render_boxes
+from .kernels.render import MeshLook, PixelRays, RenderedBoxes, Shading, render_boxes
 from .mesh import ObjectMesh
 from .mipmap import set_mip
 from .score_terms import TEXTURES
@@ -227,6 +228,31 @@ class DeviceMesh:
             self.look = look
 
     @functools.cached_property
+    def normals(self) -> wp.array:
+        """Unit vertex normals (model frame) on the device, for shading (computed on first use): the
+        angle-weighted mean of the faces' normals around each position, vertices at bit-identical
+        float32 positions merged first, so a texture seam does not crease the shading."""
+        v = np.asarray(self.mesh.vertices_m, dtype=np.float32)
+        uniq, inverse = np.unique(v, axis=0, return_inverse=True)
+        inverse = inverse.reshape(-1)
+        tm = trimesh.Trimesh(uniq.astype(np.float64), inverse[np.asarray(self.mesh.faces)], process=False)
+        return wp.array(np.asarray(tm.vertex_normals)[inverse].astype(np.float32), dtype=wp.vec3, device=self.device)
+
+    def shading(self, light_m: np.ndarray | None = None, strength: float = 0.0) -> Shading:
+        """Kernel #1's Shading: lit from the unit direction light_m (model frame, towards the light) with
+        `strength` in [0, 1]; unshaded (the thesis's render) when strength is 0."""
+        sh = Shading()
+        sh.strength = float(strength)
+        if sh.strength == 0.0:
+            sh.normals = wp.zeros(1, dtype=wp.vec3, device=self.device)
+            sh.light_m = wp.vec3(0.0, 0.0, 1.0)
+        else:
+            light = np.asarray(light_m, dtype=np.float64).reshape(3)
+            sh.normals = self.normals
+            sh.light_m = wp.vec3(*(light / np.linalg.norm(light)).astype(np.float32))
+        return sh
+
+    @functools.cached_property
     def closed_surface(self) -> bool:
         """The mesh closes a volume, outward (is_closed_surface); computed on first use."""
         return is_closed_surface(self.mesh.vertices_m, self.mesh.faces)
@@ -254,9 +280,17 @@ class Renderer(ABC):
         poses R (B, 3, 3), t (B, 3) metres)."""
         return pixel_rays(camera, R_m2c, t_m2c_m, self.device)
 
-    def render(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, boxes: np.ndarray) -> RenderedBatch:
+    def render(
+        self,
+        camera: Camera,
+        R_m2c: np.ndarray,
+        t_m2c_m: np.ndarray,
+        boxes: np.ndarray,
+        shading: Shading | None = None,
+    ) -> RenderedBatch:
         """Ray-cast each candidate's box (boxes (B, 4) pixels, w, h > 0; poses model to camera, metres):
-        colour and mask per box pixel, device arrays in the layout of flat_offsets(boxes)."""
+        colour and mask per box pixel, device arrays in the layout of flat_offsets(boxes). `shading`
+        (DeviceMesh.shading) lights the colours; none: unshaded, as in the thesis."""
         boxes = np.asarray(boxes, dtype=np.int32)
         pix_off = flat_offsets(boxes)
         n_pix = int(pix_off[-1])
@@ -269,22 +303,24 @@ class Renderer(ABC):
                 pix_off=wp.array(pix_off, dtype=wp.int32),
                 n=len(boxes),
             )
-            self._render(rays, batch, n_pix)
+            self._render(rays, batch, n_pix, shading or self.dmesh.shading())
         return batch
 
     @abstractmethod
-    def _render(self, rays: PixelRays, batch: RenderedBatch, n_pix: int) -> None:
-        """Fill batch.rgb and batch.mask (n_pix pixels) from `rays`, on this device (scoped)."""
+    def _render(self, rays: PixelRays, batch: RenderedBatch, n_pix: int, shading: Shading) -> None:
+        """Fill batch.rgb and batch.mask (n_pix pixels) from `rays`, lit by `shading`, on this device (scoped)."""
 
     @abstractmethod
     def silhouette(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, layout: PointLayout) -> wp.array:
         """uint8 per feature point of `layout`: 1 where the point's pixel ray hits the mesh inside its
         candidate's box, i.e. exactly where render()'s mask covers the point, else 0."""
 
-    def render_image(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    def render_image(
+        self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, shading: Shading | None = None
+    ) -> tuple[np.ndarray, np.ndarray]:
         """The whole image for one pose: RGB float32 (H, W, 3) in [0, 1] and mask bool (H, W)."""
         box = np.array([[0, 0, camera.width, camera.height]], dtype=np.int32)
-        b = self.render(camera, np.asarray(R_m2c)[None], np.asarray(t_m2c_m)[None], box)
+        b = self.render(camera, np.asarray(R_m2c)[None], np.asarray(t_m2c_m)[None], box, shading)
         rgb = b.rgb.numpy().reshape(camera.height, camera.width, 3)
         mask = b.mask.numpy().reshape(camera.height, camera.width).astype(bool)
         return rgb, mask
@@ -301,11 +337,11 @@ class BvhRenderer(Renderer):
         with wp.ScopedDevice(self.device):
             self.wp_mesh = wp.Mesh(points=dmesh.points, indices=dmesh.indices)
 
-    def _render(self, rays: PixelRays, batch: RenderedBatch, n_pix: int) -> None:
+    def _render(self, rays: PixelRays, batch: RenderedBatch, n_pix: int, shading: Shading) -> None:
         wp.launch(
             render_boxes,
             dim=n_pix,
-            inputs=[self.wp_mesh.id, self.dmesh.look, rays, batch.box, batch.pix_off, batch.n],
+            inputs=[self.wp_mesh.id, self.dmesh.look, rays, batch.box, batch.pix_off, batch.n, shading],
             outputs=[batch.rgb, batch.mask],
         )
 
@@ -335,20 +371,27 @@ class RasterRenderer(Renderer):
         on a front face; an open mesh keeps them."""
         return self.dmesh.closed_surface
 
-    def _render(self, rays: PixelRays, batch: RenderedBatch, n_pix: int) -> None:
+    def _render(self, rays: PixelRays, batch: RenderedBatch, n_pix: int, shading: Shading) -> None:
         look = self.dmesh.look
         key = wp.full(n_pix, raster_kernels.NO_HIT, dtype=wp.int64)
         self._per_face(raster_kernels.splat_faces, batch.n, rays, [batch.box, batch.pix_off], key)
         uv = wp.empty(n_pix if look.use_texture else 1, dtype=wp.vec2)
         lod = wp.empty(n_pix if look.use_texture and look.mip_levels else 1, dtype=float)
+        shaded = int(shading.strength != 0.0)
+        light = wp.empty(n_pix if look.use_texture and shaded else 1, dtype=float)
         wp.launch(
             raster_kernels.locate_hits,
             dim=n_pix,
-            inputs=[self.dmesh.points, look, rays, batch.box, batch.pix_off, batch.n, key],
-            outputs=[uv, lod, batch.rgb, batch.mask],
+            inputs=[self.dmesh.points, look, rays, batch.box, batch.pix_off, batch.n, key, shading],
+            outputs=[uv, lod, light, batch.rgb, batch.mask],
         )
         if look.use_texture:
-            wp.launch(raster_kernels.sample_hits, dim=n_pix, inputs=[look, uv, lod, batch.mask], outputs=[batch.rgb])
+            wp.launch(
+                raster_kernels.sample_hits,
+                dim=n_pix,
+                inputs=[look, uv, lod, light, shaded, batch.mask],
+                outputs=[batch.rgb],
+            )
 
     def silhouette(self, camera: Camera, R_m2c: np.ndarray, t_m2c_m: np.ndarray, layout: PointLayout) -> wp.array:
         rays = self.pixel_rays(camera, R_m2c, t_m2c_m)

@@ -80,6 +80,13 @@ Terms (each off in `thesis`):
   photo's pixel noise (the synthetic set's harsh light leaves speckle on lit objects) and texture
   finer than the camera resolves, which the render has and the photo lacks, move neither. The
   weights change, not the formula, so the bound holds as it is.
+- ``shade`` s: the render lit from above the table (issue 17 (c)). The thesis's render has one
+  colour per texel, the photo's faces are as bright as the light makes them: under the synthetic
+  set's harsh light a face turned to the light is burnt out while its neighbour is in shadow. With
+  s > 0 (up to 1) kernel #1 scales each hit's linear light by 1 - s + s max(0, n . l), n the mesh's
+  interpolated vertex normal and l the table's normal (kernels/render.py: Shading): the top lit as
+  the texture, the sides darker as they turn away. Colours change, not the formula, so the bound
+  holds as it is (nor does it depend on them); the render costs one normal blend per hit.
 - ``shift`` r: the grid stage's tolerance of a misaligned grid (issue 17 (g)). A grid pose
   is up to half a step from the truth, and a small textured object's score peak is narrower
   than that; so a grid candidate is scored against the photo displaced by every (dx, dy) of
@@ -137,8 +144,11 @@ class ScoreTerms:
     exposure: float = 0.0
     tone: int = 0
     smooth: float = 0.0
+    shade: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.shade) and 0.0 <= self.shade <= 1.0):
+            raise PerchError(f"score term shade must be in [0, 1], got {self.shade}")
         if not (np.isfinite(self.smooth) and 0.0 <= self.smooth <= MAX_SMOOTH):
             raise PerchError(f"score term smooth must be 0 to {MAX_SMOOTH} pixels, got {self.smooth}")
         if not 0 <= self.tone <= MAX_TONE:

@@ -223,6 +223,7 @@ def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(sce
         "tone=2",
         "tone=1,shift=1,surround=fill",
         "smooth=1.5,shift=1",
+        "shade=0.8,shift=1",
     ],
 )
 def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
@@ -250,6 +251,7 @@ def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
         "rectified=0.5,shift=1",
         "exposure=1,shift=1",
         "tone=2,shift=1",
+        "shade=0.8,shift=1",
     ],
 )
 def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights, score):

@@ -2,6 +2,7 @@
 give the same mask, and each one's silhouette() is exactly the feature points its render() mask covers,
 which is what the pruned search's bound relies on."""
 
+import dataclasses
 import math
 
 import numpy as np
@@ -20,7 +21,7 @@ from perch_warp.render import (
     point_layout,
     project_boxes,
 )
-from perch_warp.scene import label_texture, look_at_table, textured_box
+from perch_warp.scene import label_texture, look_at_table, quad, textured_box
 from perch_warp.score import grid_boxes
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import RestingPose, model_to_camera, pose_matrix
@@ -98,3 +99,67 @@ def test_the_engine_picks_a_renderer_per_search_without_changing_it(dmesh, rando
     space = SearchSpace((-0.02, 0.02), (-0.02, 0.02), 0.02, (0, 2 * math.pi), math.radians(90))
     res = engine.estimate(image, CAM, TABLE, RestingPose.upright(dmesh.mesh.vertices_m), space)
     assert res.info.renderer == "raster" and engine.renderer is before and before.name == "bvh"
+
+
+def _lin(c):
+    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
+
+
+def _srgb(x):
+    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0), 1 / 2.4) - 0.055)
+
+
+@pytest.mark.parametrize("name", ["bvh", "raster"])
+@pytest.mark.parametrize("textured", [True, False])
+def test_shading_scales_linear_light_by_lamberts_law(name, textured):
+    """The score term shade: a flat square (one normal) tilted away from the camera, lit from several
+    directions given in the model frame, against the unshaded render with the sRGB transfer written
+    out: lin(c) x (1 - s + s max(0, n . l)), n the face's normal from its winding (model frame)."""
+    tex = label_texture(np.random.default_rng(5), 128)
+    corners = np.array([[-0.05, -0.05, 0.0], [0.05, -0.05, 0.0], [0.05, 0.05, 0.0], [-0.05, 0.05, 0.0]])
+    mesh = quad(corners, tex)
+    if not textured:
+        rng = np.random.default_rng(6)
+        mesh = dataclasses.replace(mesh, uv=None, texture=None, vertex_colors=rng.uniform(0.1, 0.9, (4, 3)))
+    dm = DeviceMesh(mesh, DEVICE)
+    renderer = make_renderer(name, dm)
+    v, f = np.asarray(mesh.vertices_m), np.asarray(mesh.faces)
+    n = np.cross(v[f[0, 1]] - v[f[0, 0]], v[f[0, 2]] - v[f[0, 0]])
+    n /= np.linalg.norm(n)
+    # Model -> camera: the square 0.4 m ahead, its normal turned 30 degrees from the camera's axis, so
+    # that the model and camera frames differ (a light taken in the wrong frame fails).
+    a = math.radians(30.0)
+    turn = np.array([[math.cos(a), 0, math.sin(a)], [0, 1, 0], [-math.sin(a), 0, math.cos(a)]])
+    R = turn @ np.diag([1.0, -1.0, -1.0])
+    t = np.array([0.0, 0.0, 0.4])
+    if (R @ n)[2] > 0:  # seen from its back: turn it round so its normal faces the camera
+        R = R @ np.diag([1.0, -1.0, -1.0])
+    plain, mask = renderer.render_image(CAM, R, t)
+    assert mask.sum() > 1000
+    assert np.array_equal(renderer.render_image(CAM, R, t, dm.shading(n, 0.0))[0], plain)
+    other = np.cross(n, [1.0, 0.0, 0.0])
+    for light, s in [(n, 0.8), (n + other, 0.5), (-n, 0.7), (other, 1.0)]:
+        lit, lit_mask = renderer.render_image(CAM, R, t, dm.shading(light, s))
+        assert np.array_equal(lit_mask, mask)
+        factor = 1.0 - s + s * max(0.0, float(n @ light) / np.linalg.norm(light))
+        want = _srgb(_lin(plain[mask].astype(np.float64)) * factor)
+        np.testing.assert_allclose(lit[mask], want, atol=2e-5)
+        assert np.array_equal(lit[~mask], plain[~mask])
+
+
+def test_the_searchs_light_is_the_tables_normal_in_the_model_frame(random_weights):
+    """ScoringService lights the render from above the table: the table's normal (camera frame) turned
+    into the model frame by a candidate's pose, the same for every x, y and yaw."""
+    rng = np.random.default_rng(2)
+    mesh = textured_box((0.1, 0.06, 0.04), label_texture(rng))
+    tilt = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # lying on a side: the model's +y up
+    rp = RestingPose.upright(mesh.vertices_m, tilt)
+    engine = Engine(mesh, random_weights, DEVICE, EngineConfig(score="shade=0.5"))
+    photo = rng.integers(0, 256, (CAM.height, CAM.width, 3), dtype=np.uint8)
+    service = engine.scoring(photo, CAM, TABLE, rp)
+    sh = service.shading()
+    assert sh.strength == 0.5
+    R, _ = model_to_camera(TABLE, rp, [0.02, -0.05], [0.01, 0.03], [0.3, 2.0])
+    for Rc in R:
+        np.testing.assert_allclose(np.array(sh.light_m), Rc.T @ TABLE.R_t2c[:, 2], atol=1e-6)
+    np.testing.assert_allclose(np.array(sh.light_m), [0.0, 1.0, 0.0], atol=1e-6)

@@ -56,6 +56,9 @@ def test_names_and_terms_parse():
         ("smooth=4", "smooth must be 0 to"),
         ("smooth=-1", "smooth must be 0 to"),
         ("smooth=nan", "smooth must be 0 to"),
+        ("shade=1.5", "shade must be in"),
+        ("shade=-0.1", "shade must be in"),
+        ("shade=nan", "shade must be in"),
     ],
 )
 def test_bad_terms_name_the_culprit(spec, culprit):

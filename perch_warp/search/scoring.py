@@ -28,6 +28,7 @@ from ..features import FeatureWeights
 from ..footing import footing, footprint_radius_m, likeness_map
 from ..image import check_rgb
 from ..kernels.features import PointWeights
+from ..kernels.render import Shading
 from ..outline import edge_ceiling, edge_map
 from ..rarity import rarity_and_labels
 from ..render import MIN_DEPTH_M, BoxProjector, Renderer
@@ -248,6 +249,11 @@ class ScoringService:
     def lap(self, stage: str, t0: float, timings: dict | None = None) -> float:
         return lap(self.device, self.timings if timings is None else timings, stage, t0)
 
+    def shading(self) -> Shading:
+        """Kernel #1's light (score term shade): from above the table, whose normal is the resting
+        pose's third row in the model frame (the same for every x, y and yaw on the table)."""
+        return self.renderer.dmesh.shading(self.resting.R_rest[2], self.terms.shade)
+
     def score(self, poses, stats: SearchStats | None = None) -> np.ndarray:
         """Score (N,) float64 of each pose (x_m, y_m, yaw_rad arrays or a PoseSource), set up a chunk at
         a time; -inf where it shows no feature point (those count as done on the progress bar at once)."""
@@ -344,7 +350,7 @@ class ScoringService:
         laps: dict[str, float] = {}
         photo, scorer = self.photo, self.backends.scorer
         t = time.perf_counter()
-        batch = self.renderer.render(self.camera, c.R[idx], c.tr[idx], c.boxes[idx])
+        batch = self.renderer.render(self.camera, c.R[idx], c.tr[idx], c.boxes[idx], self.shading())
         t = self.lap("render", t, laps)
         vals, pt_off = scorer.score_points(
             photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights, shifts, gains, tone
