@@ -167,8 +167,8 @@ def light_factor(sh: Shading, indices: wp.array(dtype=wp.int32), face: int, bu: 
     if sh.strength == 0.0:
         return 1.0
     n = vertex_color(indices, sh.normals, face, bu, bv)  # the same barycentric blend as a vertex colour
-    lit = wp.max(wp.dot(wp.normalize(n), sh.light_m), 0.0)
-    return 1.0 - sh.strength + sh.strength * lit
+    cos_in = wp.max(wp.dot(wp.normalize(n), sh.light_m), 0.0)
+    return 1.0 - sh.strength + sh.strength * cos_in
 
 
 @wp.func

@@ -238,13 +238,18 @@ class DeviceMesh:
         tm = trimesh.Trimesh(uniq.astype(np.float64), inverse[np.asarray(self.mesh.faces)], process=False)
         return wp.array(np.asarray(tm.vertex_normals)[inverse].astype(np.float32), dtype=wp.vec3, device=self.device)
 
+    @functools.cached_property
+    def _no_normals(self) -> wp.array:
+        """The unshaded render's placeholder (Shading.normals is not read when strength is 0)."""
+        return wp.zeros(1, dtype=wp.vec3, device=self.device)
+
     def shading(self, light_m: np.ndarray | None = None, strength: float = 0.0) -> Shading:
         """Kernel #1's Shading: lit from the unit direction light_m (model frame, towards the light) with
         `strength` in [0, 1]; unshaded (the thesis's render) when strength is 0."""
         sh = Shading()
         sh.strength = float(strength)
         if sh.strength == 0.0:
-            sh.normals = wp.zeros(1, dtype=wp.vec3, device=self.device)
+            sh.normals = self._no_normals
             sh.light_m = wp.vec3(0.0, 0.0, 1.0)
         else:
             light = np.asarray(light_m, dtype=np.float64).reshape(3)
