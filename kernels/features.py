@@ -43,7 +43,7 @@ import functools
 
 import warp as wp
 
-from .render import RenderedBoxes, find_candidate, linear_to_srgb, srgb_to_linear
+from .render import RenderedBoxes, find_candidate, lit
 
 # Marks feature points that are not on the candidate's mask; far below any score.
 NOT_ON_MASK = -1.0e30
@@ -315,18 +315,12 @@ def exposure_gain(exp: Exposure, mean_lum: float) -> float:
     return wp.pow(exp.ref / wp.max(mean_lum, exp.floor), exp.gamma)
 
 
-@wp.func
-def exposed(c: float, gain: float) -> float:
-    return linear_to_srgb(wp.min(gain * srgb_to_linear(c), 1.0))
-
-
 @wp.kernel(enable_backward=False)
 def read_at_exposure(rgb: wp.array(dtype=wp.vec3), gain: float, out: wp.array(dtype=wp.vec3)):
     """Each rendered colour (sRGB in [0, 1]) as a camera exposed `gain` times brighter records it: the
     light is linear, the sensor clips at white (the tone term, perch_warp.score_terms)."""
     i = wp.tid()
-    c = rgb[i]
-    out[i] = wp.vec3(exposed(c[0], gain), exposed(c[1], gain), exposed(c[2], gain))
+    out[i] = lit(rgb[i], gain)
 
 
 @functools.cache

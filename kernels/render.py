@@ -172,15 +172,19 @@ def light_factor(sh: Shading, indices: wp.array(dtype=wp.int32), face: int, bu: 
 
 
 @wp.func
+def exposed(c: float, gain: float) -> float:
+    """An sRGB value as a camera exposed `gain` times brighter records it: the light is linear, the
+    sensor clips at white."""
+    return linear_to_srgb(wp.min(gain * srgb_to_linear(c), 1.0))
+
+
+@wp.func
 def lit(c: wp.vec3, f: float) -> wp.vec3:
-    """sRGB colour c with its linear light scaled by f."""
+    """sRGB colour c with its linear light scaled by f, clipped at white (exposed, per channel); c as it
+    is for f = 1, so the unshaded render keeps the thesis's colours bit for bit."""
     if f == 1.0:
         return c
-    return wp.vec3(
-        linear_to_srgb(f * srgb_to_linear(c[0])),
-        linear_to_srgb(f * srgb_to_linear(c[1])),
-        linear_to_srgb(f * srgb_to_linear(c[2])),
-    )
+    return wp.vec3(exposed(c[0], f), exposed(c[1], f), exposed(c[2], f))
 
 
 @wp.struct

@@ -4,6 +4,7 @@ import numpy as np
 import pytest
 import torch
 import warp as wp
+from _colour import srgb_exposed
 from _device import DEVICE
 from perch_warp.kernels.features import NOT_ON_MASK
 
@@ -128,7 +129,7 @@ def _numpy_scores(
         gx0, gy0, gw, gh = gboxes[c]
         crgb = render_gain * rgb[pix_off[c] : pix_off[c + 1]].reshape(bh, bw, 3).astype(np.float64)
         if render_tone != 1.0:
-            crgb = _srgb_exposed(crgb, render_tone)
+            crgb = srgb_exposed(crgb, render_tone)
         cmask = mask[pix_off[c] : pix_off[c + 1]].reshape(bh, bw).astype(bool)
         comp = img.astype(np.float64) / 255.0
         if fill:
@@ -182,13 +183,6 @@ def _numpy_scores(
                     value += outline * _numpy_outline(cmask, x0, y0, u, v, stride, edge, shift)
                 out.append(value)
     return np.array(out)
-
-
-def _srgb_exposed(c, gain):
-    """sRGB colours c in [0, 1] as a camera exposed `gain` times brighter records them (IEC 61966-2-1)."""
-    lin = np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-    x = np.minimum(gain * lin, 1.0)
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * x ** (1 / 2.4) - 0.055)
 
 
 def _lit(W, w: FeatureWeights, window01, gamma, floor=0.1):
@@ -312,7 +306,7 @@ def test_tone_scores_equal_numpy_reference(random_weights, conv, surround):
     shifts, tone = shift_array(1, DEVICE), tone_gains(2)
     assert np.array_equal(tone, [1, 2, 4])
     # the clipping is there to test: at 4x, a third of the random colours' channels burn out
-    assert 0.2 < (_srgb_exposed(rgb.astype(np.float64), 4.0) > 1.0 - 1e-9).mean() < 0.6
+    assert 0.2 < (srgb_exposed(rgb.astype(np.float64), 4.0) > 1.0 - 1e-9).mean() < 0.6
     vals, pt_off = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts, None, tone)
     plain, _ = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts)
     n = int(pt_off.numpy()[-1])

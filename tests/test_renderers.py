@@ -7,6 +7,7 @@ import math
 
 import numpy as np
 import pytest
+from _colour import srgb_exposed
 from _device import DEVICE
 
 from perch_warp.camera import Camera
@@ -101,14 +102,6 @@ def test_the_engine_picks_a_renderer_per_search_without_changing_it(dmesh, rando
     assert res.info.renderer == "raster" and engine.renderer is before and before.name == "bvh"
 
 
-def _lin(c):
-    return np.where(c <= 0.04045, c / 12.92, ((c + 0.055) / 1.055) ** 2.4)
-
-
-def _srgb(x):
-    return np.where(x <= 0.0031308, 12.92 * x, 1.055 * np.power(np.maximum(x, 0.0), 1 / 2.4) - 0.055)
-
-
 @pytest.mark.parametrize("name", ["bvh", "raster"])
 @pytest.mark.parametrize("textured", [True, False])
 def test_shading_scales_linear_light_by_lamberts_law(name, textured):
@@ -142,7 +135,7 @@ def test_shading_scales_linear_light_by_lamberts_law(name, textured):
         lit, lit_mask = renderer.render_image(CAM, R, t, dm.shading(light, s))
         assert np.array_equal(lit_mask, mask)
         factor = 1.0 - s + s * max(0.0, float(n @ light) / np.linalg.norm(light))
-        want = _srgb(_lin(plain[mask].astype(np.float64)) * factor)
+        want = srgb_exposed(plain[mask].astype(np.float64), factor)
         np.testing.assert_allclose(lit[mask], want, atol=2e-5)
         assert np.array_equal(lit[~mask], plain[~mask])
 
