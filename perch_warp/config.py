@@ -32,7 +32,10 @@ class EngineConfig:
     search: str = "auto"
     coarse_xy_m: float = 0.02  # coarse-to-fine: the first lattice's x/y step
     coarse_yaw_rad: float = math.radians(10.0)  # coarse-to-fine: the first lattice's yaw step
-    beam: int = 32  # coarse-to-fine: how many best candidates each finer level refines
+    # coarse-to-fine: how many best candidates each finer level refines. 512: the first lattice's cost
+    # dominates, so a wide beam costs little more and agrees with the exact search more often
+    # (docs/performance.md, "Coarse-to-fine against exhaustive")
+    beam: int = 512
     max_polish: int = 10  # coarse-to-fine: hill-climbing rounds on the final grid
     image_scale: float = 1.0  # search on the photo resized by this factor (camera scaled alike): cheaper on a CPU
     # coarse-to-fine: leave out lattice points whose silhouette bound cannot reach the beam (perch_warp.bound);

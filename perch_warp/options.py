@@ -61,7 +61,7 @@ def _add_search_method_arguments(g) -> None:
     )
     g.add_argument("--coarse-xy", type=float, default=0.02, help="coarse-to-fine: first lattice's x/y step, m")
     g.add_argument("--coarse-yaw", type=float, default=10.0, help="coarse-to-fine: first lattice's yaw step, deg")
-    g.add_argument("--beam", type=int, default=32, help="coarse-to-fine: candidates refined per level (default 32)")
+    g.add_argument("--beam", type=int, default=512, help="coarse-to-fine: candidates refined per level (default 512)")
     g.add_argument(
         "--refine",
         action=argparse.BooleanOptionalAction,
