@@ -84,7 +84,10 @@ class ScoreMap:
     finite; -inf where no candidate of the cell shows a feature point; NaN where not known (a candidate
     of the cell was not scored and might score higher than those that were). `upper` (nx, ny): an upper
     bound of the cell's best (= best where known; +inf where nothing bounds it). `best_yaw_rad` (nx, ny):
-    the yaw of the cell's best (NaN where best is not finite). `why_unknown`: what NaN cells are."""
+    the yaw of the cell's best (NaN where best is not finite). `why_unknown`: what NaN cells are.
+    `seen` (nx, ny): the best score among the cell's scored candidates, a lower bound of `best` known
+    even where `best` is not (a coarse-to-fine search's visits; -inf where none was scored), and
+    `seen_yaw_rad` its yaw (NaN there); None in maps written before they existed."""
 
     xs_m: np.ndarray
     ys_m: np.ndarray
@@ -93,6 +96,8 @@ class ScoreMap:
     upper: np.ndarray
     best_yaw_rad: np.ndarray
     why_unknown: str
+    seen: np.ndarray | None = None
+    seen_yaw_rad: np.ndarray | None = None
 
     @property
     def n_unknown(self) -> int:
@@ -100,17 +105,23 @@ class ScoreMap:
 
     def save(self, f) -> None:
         """Write as a compressed .npz into the binary file f (float32 scores: a picture's precision)."""
+        seen = (
+            {}
+            if self.seen is None
+            else {"seen": self.seen.astype(np.float32), "seen_yaw_rad": self.seen_yaw_rad.astype(np.float32)}
+        )
         np.savez_compressed(
             f, xs_m=self.xs_m, ys_m=self.ys_m, step_m=self.step_m, best=self.best.astype(np.float32),
             upper=self.upper.astype(np.float32), best_yaw_rad=self.best_yaw_rad.astype(np.float32),
-            why_unknown=np.array(self.why_unknown),
+            why_unknown=np.array(self.why_unknown), **seen,
         )  # fmt: skip
 
     @classmethod
     def load(cls, path) -> ScoreMap:
         with np.load(path) as z:
             grids = (z[k].astype(np.float64) for k in ("best", "upper", "best_yaw_rad"))
-            return cls(z["xs_m"], z["ys_m"], float(z["step_m"]), *grids, str(z["why_unknown"]))
+            seen = [z[k].astype(np.float64) if k in z.files else None for k in ("seen", "seen_yaw_rad")]
+            return cls(z["xs_m"], z["ys_m"], float(z["step_m"]), *grids, str(z["why_unknown"]), *seen)
 
     def peaks(self, n: int, sep_steps: int) -> list[tuple[float, float, float, float]]:
         """Up to n distinct peaks (x_m, y_m, yaw_rad, score), best first: known cells more than
@@ -144,12 +155,23 @@ def best_over_rest(k: Knowledge, xy_axes: tuple[int, int] = (0, 1)) -> tuple[np.
     return best, np.maximum(known_max, top_unknown), arg
 
 
+def _seen(k: Knowledge, arg: np.ndarray) -> np.ndarray:
+    """Per (x, y) cell (k's axes x and y first), the score of its best scored candidate `arg`
+    (best_over_rest's; -1: none scored, -inf there)."""
+    v = k.value.reshape(k.shape[0], k.shape[1], -1)
+    got = np.take_along_axis(v, np.clip(arg, 0, None)[..., None], axis=2)[..., 0]
+    return np.where(arg >= 0, got, -np.inf)
+
+
 def score_map(k: Knowledge, space: SearchSpace) -> ScoreMap:
     """The ScoreMap of a (x, y, yaw) space from what its search knows."""
     xs, ys, yaws = space.axes()
     best, upper, arg = best_over_rest(k)
     yaw = np.where(np.isfinite(best), yaws[np.clip(arg, 0, None)], np.nan)
-    return ScoreMap(xs, ys, space.xy_step_m, best, upper, yaw, k.why_unknown if np.isnan(best).any() else "")
+    seen = _seen(k, arg)
+    seen_yaw = np.where(arg >= 0, yaws[np.clip(arg, 0, None)], np.nan)
+    why = k.why_unknown if np.isnan(best).any() else ""
+    return ScoreMap(xs, ys, space.xy_step_m, best, upper, yaw, why, seen, seen_yaw)
 
 
 def stacked(ks: list[Knowledge]) -> Knowledge:
@@ -169,9 +191,12 @@ def score_map_over_rests(ks: list[Knowledge], space: SearchSpace) -> tuple[Score
     best over resting pose and yaw per cell; and, per cell, the index of the pose of that best (-1 where
     the cell's best is not finite)."""
     xs, ys, yaws = space.axes()
-    best, upper, arg = best_over_rest(stacked(ks))
+    k = stacked(ks)
+    best, upper, arg = best_over_rest(k)
     finite = np.isfinite(best)
     pose, k_yaw = np.divmod(np.clip(arg, 0, None), len(yaws))
     yaw = np.where(finite, yaws[k_yaw], np.nan)
+    seen_yaw = np.where(arg >= 0, yaws[k_yaw], np.nan)
     why = next((k.why_unknown for k in ks if k.why_unknown), "") if np.isnan(best).any() else ""
-    return ScoreMap(xs, ys, space.xy_step_m, best, upper, yaw, why), np.where(finite, pose, -1)
+    smap = ScoreMap(xs, ys, space.xy_step_m, best, upper, yaw, why, _seen(k, arg), seen_yaw)
+    return smap, np.where(finite, pose, -1)

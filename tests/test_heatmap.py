@@ -51,6 +51,38 @@ def test_heat_map_is_the_best_score_over_yaw_of_the_same_poses(scene, random_wei
     assert np.array_equal(p.best[known], ref.max(axis=2)[known])
     assert np.all(ref.max(axis=2)[~known] <= p.upper[~known])
     assert p.n_unknown == 0 or "pruned" in p.why_unknown
+    assert np.array_equal(r.heatmap.seen, r.heatmap.best) and np.array_equal(
+        r.heatmap.seen_yaw_rad, r.heatmap.best_yaw_rad
+    )
+
+
+def test_seen_is_the_best_visited_pose_of_each_cell_where_best_is_unknown(scene, random_weights, tmp_path):
+    space = _space(scene)
+    full = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(search="exhaustive", refine=False))
+    xs, ys, yaws = space.axes()
+    ref = _all_scores(full, scene, space).reshape(len(xs), len(ys), len(yaws))
+    cfg = EngineConfig(search="coarse-to-fine", refine=False, beam=2, coarse_xy_m=0.04, coarse_yaw_rad=math.radians(90))
+    m = (
+        Engine(scene.mesh, random_weights, DEVICE, cfg)
+        .estimate(scene.image, scene.camera, scene.table, scene.resting, space)
+        .heatmap
+    )
+    assert m.n_unknown > 0  # the pyramid leaves cells partly unvisited: their best is unknown
+    visited = np.isfinite(m.seen)
+    assert visited.sum() > len(xs) * len(ys) - m.n_unknown  # seen covers partly visited cells too
+    i, j = np.nonzero(visited)
+    k = np.rint((m.seen_yaw_rad[i, j] - yaws[0]) / (yaws[1] - yaws[0])).astype(int)
+    assert np.array_equal(m.seen[i, j], ref[i, j, k])  # a visited pose's own score ...
+    assert np.all(m.seen[i, j] <= ref.max(axis=2)[i, j])  # ... so at most the cell's best
+    known = np.isfinite(m.best)
+    assert np.array_equal(m.seen[known], m.best[known])
+    assert np.all(np.isneginf(m.seen[~visited])) and np.all(np.isnan(m.seen_yaw_rad[~visited]))
+    with open(tmp_path / "m.npz", "wb") as f:
+        m.save(f)
+    back = type(m).load(tmp_path / "m.npz")
+    assert np.array_equal(back.seen, m.seen.astype(np.float32)) and np.array_equal(
+        back.best, m.best.astype(np.float32), equal_nan=True
+    )
 
 
 def test_best_over_rest_takes_any_extra_axis_and_never_invents_values():
