@@ -3,6 +3,7 @@ then re-score them under every candidate score (issue 17's development protocol)
 
     python tools/score_study.py collect --dataset DEV --out POOL.npz [--scenes ..] [--max-images N]
         [--coarse-xy 0.03] [--coarse-yaw 15] [--pool 100] [--image-scale 0.5] [--clip 1.0]
+    python tools/score_study.py from-run RUN --out POOL.json [--pool 100]
     python tools/score_study.py rescore POOL.npz --score thesis --score surround=fill,shrink=16 ...
         [--out STUDY.json]
     python tools/score_study.py summary STUDY.json [--base SCORE]
@@ -10,16 +11,20 @@ then re-score them under every candidate score (issue 17's development protocol)
 `collect` runs, per target (thesis protocol: height, roll and pitch from the ground truth), the
 exact (pruned) search of the default region on a coarse grid under the thesis's score and keeps
 its best `--pool` poses (the competitors), plus the ground truth's (x, y, yaw) on the table.
-`rescore` scores at full resolution, under each score, the pool, the ground truth's cell (within
-1 cm and 5 deg of it at 5 mm / 2.5 deg, what a search would have to find) and the same cell around
+`from-run` takes the pool from a finished `perch_warp eval` run instead: each target's best
+`--pool` cells of the grid its search scored (the heat map's `seen`: the best scored yaw per x, y),
+so the competitors are those the run's own score and search found, at the run's resolution (the
+run's answers, not the thesis's coarse grid).
+
+`rescore` scores at full resolution, under each score, the pool, the ground truth's cell (within 1
+cm and 5 deg of it at 5 mm / 2.5 deg, what a search would have to find) and the same cell around
 each of the pool's best `--peaks` distinct poses away from the truth (so the distractors are refined
-like the truth), takes the best of the union as a
-search would, and reports per score: ADD-S AUC, ADD-S < 2 cm, how many targets the ground
-truth's cell wins (the score "explains" the photo best at the truth), paired against the first
-score with a bootstrap interval of the difference. The ground truth only defines the cell that
-is scored, never a score. It is an approximation of a full search (the pool comes from the
-thesis's score on a coarse grid), meant for ranking variants; the frozen score is then checked
-with full searches (`perch_warp eval`).
+like the truth), takes the best of the union as a search would, and reports per score: ADD-S AUC,
+ADD-S < 2 cm, how many targets the ground truth's cell wins (the score "explains" the photo best at
+the truth), paired against the first score with a bootstrap interval of the difference. The ground
+truth only defines the cell that is scored, never a score. It is an approximation of a full search
+(the pool comes from one score's search: a place only another score ranks high is not in it), meant
+for ranking variants; the frozen score is then checked with full searches (`perch_warp eval`).
 """
 
 from __future__ import annotations
@@ -37,9 +42,11 @@ import numpy as np
 from perch_warp import bop, pose_error
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
+from perch_warp.eval.plots import heatmap_path
 from perch_warp.features import load_feature_weights
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
+from perch_warp.score_map import ScoreMap
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import decompose_on_table, model_to_camera
 
@@ -90,6 +97,51 @@ def collect(args: argparse.Namespace) -> None:
             )
             _save(args.out, args, rows)
     print(f"collected {len(rows)} targets in {time.perf_counter() - t_all:.0f} s -> {args.out}", file=sys.stderr)
+
+
+def from_run(args: argparse.Namespace) -> None:
+    run = Path(args.run)
+    cfg_path, journal = run / "eval_config.json", run / "targets.jsonl"
+    for f in (cfg_path, journal):
+        if not f.is_file():
+            raise PerchError(f"{f}: not found (from-run reads a perch_warp eval output folder)")
+    cfg = json.loads(cfg_path.read_text())
+    ds = bop.open_dataset(cfg["dataset"], cfg.get("split", "test"), None)
+    done = [json.loads(line) for line in journal.read_text().splitlines() if line.strip()]
+    keys = {(d["scene_id"], d["im_id"], d["inst"]) for d in done}
+    sel = bop.select_targets(ds, sorted({k[0] for k in keys}))
+    by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
+    tables = bop.TableCache(cfg.get("table_source", "auto"))
+    rows = []
+    for key in sorted(keys):
+        im, tg = by_key[key]
+        path = heatmap_path(run, key)
+        smap = ScoreMap.load(path)
+        if smap.seen is None:
+            raise PerchError(f"{path}: written before heat maps kept 'seen' (commit f0d8655); rerun the eval")
+        table, _ = tables.get(im)
+        _, gx, gy, gyaw = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
+        i, j = np.nonzero(np.isfinite(smap.seen))
+        order = np.lexsort((j, i, -smap.seen[i, j]))[: args.pool]
+        i, j = i[order], j[order]
+        pool = np.stack([smap.xs_m[i], smap.ys_m[j], smap.seen_yaw_rad[i, j]], -1)
+        rows.append(
+            {
+                "key": list(key),
+                "obj_id": tg.obj_id,
+                "rgb": str(im.rgb),
+                "gt": [gx, gy, gyaw],
+                "pool": pool.tolist(),
+                "pool_scores": smap.seen[i, j].tolist(),
+            }
+        )
+    options = cfg.get("options") or {}
+    meta = {"dataset": str(Path(cfg["dataset"]).resolve()), "models": None, "weights": options.get("weights", "auto"),
+            "run": str(run.resolve()), "run_options": options, "targets": rows}  # fmt: skip
+    tmp = args.out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(meta))
+    tmp.replace(args.out)
+    print(f"{len(rows)} targets' pools from {run} -> {args.out}", file=sys.stderr)
 
 
 def _save(path: Path, args: argparse.Namespace, rows: list[dict]) -> None:
@@ -333,6 +385,10 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--clip", type=float, default=1.0, help="default region's square, metres (default 1)")
     c.add_argument("--pool", type=int, default=100, help="best poses kept per target (default 100)")
     c.add_argument("--image-scale", type=float, default=0.5, help="photo scale of the collecting search (default 0.5)")
+    f = sub.add_parser("from-run", help="each target's competing poses from a finished eval run's heat maps")
+    f.add_argument("run", type=Path, help="the eval's output folder (targets.jsonl, heatmaps/)")
+    f.add_argument("--out", type=Path, required=True)
+    f.add_argument("--pool", type=int, default=100, help="best scored cells kept per target (default 100)")
     r = sub.add_parser("rescore", help="score the pools and the truth's cells under each score")
     r.add_argument("pool", type=Path)
     r.add_argument("--score", action="append", required=True, help="a score name or terms; repeat")
@@ -345,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
     sh.add_argument("--base", help="the score the others are paired against (default: the first)")
     args = p.parse_args(argv)
     try:
-        {"collect": collect, "rescore": rescore, "summary": show}[args.cmd](args)
+        {"collect": collect, "from-run": from_run, "rescore": rescore, "summary": show}[args.cmd](args)
     except PerchError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -1,0 +1,66 @@
+"""tools/score_study.py from-run: each target's pool is the best cells its search scored (the heat map's
+`seen`), best first, and its truth the ground truth on the table; heat maps without `seen` are refused."""
+
+import json
+
+import numpy as np
+from _tools import load_tool
+from test_bop import write_tiny_dataset
+from test_evaluate import FakeEstimator, run_eval
+
+from perch_warp import bop
+from perch_warp.score_map import ScoreMap
+from perch_warp.table import decompose_on_table
+
+XS, YS = np.array([-0.02, 0.0, 0.02]), np.array([-0.01, 0.01])
+SEEN = np.array([[0.1, 0.7], [0.3, -np.inf], [0.5, 0.2]])
+SEEN_YAW = np.where(np.isfinite(SEEN), np.arange(6).reshape(3, 2) * 0.5, np.nan)
+
+
+class SeenEstimator(FakeEstimator):
+    """The fake estimates, each with a heat map whose best is unknown everywhere but whose `seen` is SEEN."""
+
+    def __init__(self, with_seen: bool = True):
+        super().__init__()
+        self.with_seen = with_seen
+
+    def __call__(self, target, image, camera, table, resting, space):
+        est = super().__call__(target, image, camera, table, resting, space)
+        nan = np.full(SEEN.shape, np.nan)
+        seen = (SEEN, SEEN_YAW) if self.with_seen else (None, None)
+        est.heatmap = ScoreMap(XS, YS, 0.02, nan, np.full(SEEN.shape, np.inf), nan, "not visited", *seen)
+        return est
+
+
+def test_from_run_pools_the_best_seen_cells_and_the_truth(tmp_path):
+    root = write_tiny_dataset(tmp_path / "ds")
+    run_eval(root, tmp_path / "run", SeenEstimator())
+    tool = load_tool("score_study")
+    assert tool.main(["from-run", str(tmp_path / "run"), "--out", str(tmp_path / "pool.json"), "--pool", "3"]) == 0
+    pool = json.loads((tmp_path / "pool.json").read_text())
+    ds = bop.open_dataset(root, "test", None)
+    truth = {tuple(t.key): (im, t) for im in bop.select_targets(ds).images for t in im.targets}
+    assert sorted(tuple(r["key"]) for r in pool["targets"]) == sorted(truth)
+    tables = bop.TableCache("auto")
+    for r in pool["targets"]:
+        # the three best finite cells of SEEN: (0, 1) 0.7, (2, 0) 0.5, (1, 0) 0.3, at their seen yaw
+        assert r["pool"] == [[-0.02, 0.01, 0.5], [0.02, -0.01, 2.0], [0.0, -0.01, 1.0]]
+        assert np.array_equal(np.float32(r["pool_scores"]), np.float32([0.7, 0.5, 0.3]))  # stored as float32
+        im, t = truth[tuple(r["key"])]
+        _, x, y, yaw = decompose_on_table(tables.get(im)[0], t.R_gt, t.t_gt_m)
+        assert np.allclose(r["gt"], [x, y, yaw])
+
+
+def test_from_run_refuses_heat_maps_without_seen(tmp_path, capsys):
+    root = write_tiny_dataset(tmp_path / "ds")
+    run_eval(root, tmp_path / "run", SeenEstimator(with_seen=False))
+    tool = load_tool("score_study")
+    assert tool.main(["from-run", str(tmp_path / "run"), "--out", str(tmp_path / "pool.json")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "before heat maps kept 'seen'" in err and "\n" not in err and not (tmp_path / "pool.json").exists()
+
+
+def test_from_run_on_a_folder_that_is_not_a_run(tmp_path, capsys):
+    tool = load_tool("score_study")
+    assert tool.main(["from-run", str(tmp_path), "--out", str(tmp_path / "pool.json")]) == 1
+    assert "eval_config.json: not found" in capsys.readouterr().err
