@@ -214,6 +214,10 @@ class PointWeights:
     # The rectified term's weight b (0: off, the thesis's score): the cosine is (1 - b) cos(R, I) +
     # b cos(R+, I+), R+ and I+ the features after AlexNet's ReLU (perch_warp.score_terms `rectified`).
     rectified: float
+    # The centre term's weight c (0: off): the cosine is (1 - c) cos(R, I) + c cos(R - Rm, I - Im), Rm and
+    # Im the means of the candidate's features and the photo's over its compared points
+    # (perch_warp.score_terms `centre`; only kernel #2's torch form, score_features, computes them).
+    centre: float
 
 
 @wp.func
@@ -325,7 +329,7 @@ def read_at_exposure(rgb: wp.array(dtype=wp.vec3), gain: float, out: wp.array(dt
 
 @functools.cache
 def feature_kernels(C: int):
-    """(vecC, observed_features, score_points, score_features) for C output channels."""
+    """(vecC, observed_features, score_points, score_features, candidate_sums) for C output channels."""
     vecC = wp.types.vector(length=C, dtype=wp.float32)
 
     @wp.func
@@ -337,16 +341,37 @@ def feature_kernels(C: int):
         return out
 
     @wp.func
+    def cosine(f: vecC, g: vecC) -> float:
+        """cos(f, g), 0 where either vanishes."""
+        denom = wp.length(f) * wp.length(g)
+        cos = float(0.0)
+        if denom > 1.0e-12:
+            cos = wp.dot(f, g) / denom
+        return cos
+
+    @wp.func
     def weighted_cosine(
-        f: vecC, f_norm: float, g: vecC, g_norm: float, pw: PointWeights, gx: int, gy: int, share: float
+        f: vecC,
+        f_norm: float,
+        g: vecC,
+        g_norm: float,
+        pw: PointWeights,
+        gx: int,
+        gy: int,
+        share: float,
+        f_mean: vecC,
+        g_mean: vecC,
     ) -> float:
         """cos(f, g) x gain - offset at grid cell (gx, gy) (f_norm, g_norm: the features' lengths), the cosine
         weighted by share (1, or the window's covered fraction); cos is 0 where either feature vanishes.
-        With the rectified term, cos blends in the rectified features' cosine (PointWeights.rectified)."""
+        With the rectified term, cos blends in the rectified features' cosine (PointWeights.rectified);
+        with the centre term, the cosine of f - f_mean and g - g_mean (the candidate's means)."""
         denom = f_norm * g_norm
         cos = float(0.0)
         if denom > 1.0e-12:
             cos = wp.dot(f, g) / denom
+        if pw.centre > 0.0:
+            cos = (1.0 - pw.centre) * cos + pw.centre * cosine(f - f_mean, g - g_mean)
         if pw.rectified > 0.0:
             fr = rectified(f, 1)
             gr = rectified(g, 1)
@@ -376,6 +401,8 @@ def feature_kernels(C: int):
         i: int,
         rim: Rim,
         stride: int,
+        f_mean: vecC,
+        g_mean: vecC,
         out: wp.array(dtype=float),
     ):
         """out[(k S + s) n_points + i] = weighted_cosine of the point's feature f = gains[k] a + q (rectified
@@ -393,7 +420,8 @@ def feature_kernels(C: int):
                 hy = gy + shifts[s][1]
                 value = float(0.0)
                 if in_box(grid, hx, hy):
-                    value = weighted_cosine(f, f_norm, obs_feat[hy, hx], obs_norm[hy, hx], pw, hx, hy, share)
+                    g = obs_feat[hy, hx]
+                    value = weighted_cosine(f, f_norm, g, obs_norm[hy, hx], pw, hx, hy, share, f_mean, g_mean)
                     if rim.on != 0:
                         d = shifts[s] * stride  # the whole silhouette moves: its outline pixel with it
                         value += pw.outline * outline_credit(pw.edge, rim.bx + d[0], rim.by + d[1], rim.normal)
@@ -538,9 +566,11 @@ def feature_kernels(C: int):
             a = conv_at(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, 0, sur, exp)
         else:
             a, q = conv_split(image, seen.rgb, seen.mask, roff, rb, u, v, Wt, bias, pts.ks, sur)
+        none = vecC()  # no centre term in this form (FeatureScorer refuses it)
         compared_values(
-            a, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out
-        )
+            a, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride,
+            none, none, out,
+        )  # fmt: skip
 
     @wp.kernel(enable_backward=False, module="unique")
     def score_features(
@@ -555,13 +585,16 @@ def feature_kernels(C: int):
         shifts: wp.array(dtype=wp.vec2i),
         gains: wp.array(dtype=float),
         feat_rest: wp.array(dtype=float),
+        sums: wp.array(dtype=float),
+        counts: wp.array(dtype=float),
         out: wp.array(dtype=float),
     ):
         """score_points' values from features convolved elsewhere: candidate c's conv1 output as C
         planes of its points (row by row in its grid box) from C pts.pt_off[c] in feat; the same points
         on and off the mask, the same cosine, the same shifts. With the exposure term (gains: more
         than one), feat holds the response to the rendered pixels alone and feat_rest, laid out alike,
-        the bias plus the rest's (conv_split's a and q)."""
+        the bias plus the rest's (conv_split's a and q). With the centre term, sums and counts are
+        candidate_sums' (its features' and the photo's means over its compared points)."""
         i = wp.tid()
         compared, value, c, gx, gy, u, v = point_to_compare(seen, pts, obs_feat.shape[0], obs_feat.shape[1], i)
         if not compared:
@@ -579,8 +612,41 @@ def feature_kernels(C: int):
         if gains.shape[0] > 1:
             for ch in range(C):
                 q[ch] = feat_rest[at + ch * n]
+        f_mean = vecC()
+        g_mean = vecC()
+        if pw.centre > 0.0:
+            k = wp.max(counts[c], 1.0)
+            for ch in range(C):
+                f_mean[ch] = sums[2 * C * c + ch] / k
+                g_mean[ch] = sums[2 * C * c + C + ch] / k
         compared_values(
-            f, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride, out
-        )
+            f, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride,
+            f_mean, g_mean, out,
+        )  # fmt: skip
 
-    return vecC, observed_features, score_points, score_features
+    @wp.kernel(enable_backward=False, module="unique")
+    def candidate_sums(
+        feat: wp.array(dtype=float),
+        seen: RenderedBoxes,
+        pts: PointLayout,
+        obs_feat: wp.array2d(dtype=vecC),
+        sums: wp.array(dtype=float),
+        counts: wp.array(dtype=float),
+    ):
+        """The centre term's first pass (feat laid out as score_features reads it): per candidate c, the
+        sums of its compared points' features (sums[2 C c + ch]), of the photo's features there
+        (sums[2 C c + C + ch]) and their count (counts[c]); sums and counts start at 0."""
+        i = wp.tid()
+        compared, value, c, gx, gy, u, v = point_to_compare(seen, pts, obs_feat.shape[0], obs_feat.shape[1], i)
+        if not compared:
+            return
+        first = pts.pt_off[c]
+        n = pts.pt_off[c + 1] - first
+        at = C * first + (i - first)
+        g = obs_feat[gy, gx]
+        for ch in range(C):
+            wp.atomic_add(sums, 2 * C * c + ch, feat[at + ch * n])
+            wp.atomic_add(sums, 2 * C * c + C + ch, g[ch])
+        wp.atomic_add(counts, c, 1.0)
+
+    return vecC, observed_features, score_points, score_features, candidate_sums

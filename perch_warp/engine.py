@@ -92,6 +92,12 @@ class Engine:
         self._renderers: dict[str, Renderer] = {}
         self.renderer_for(self.default_renderer)  # built now: BVH construction is not a search stage's
         conv = self.config.conv if self.config.conv != "auto" else auto_conv(self.device)
+        if self.terms.centre > 0.0 and (conv != "torch" or self.config.relu):
+            raise PerchError(
+                f"score {self.config.score!r} centres each candidate's features (centre={self.terms.centre}), "
+                f"which kernel #2's torch form does on raw conv1 alone: use --conv torch"
+                + (" and drop --relu" if self.config.relu else "")
+            )
         self.scorer = FeatureScorer(
             smoothed(weights, self.terms.smooth),
             self.device,

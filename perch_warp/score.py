@@ -99,7 +99,8 @@ class FeatureScorer:
         self.ks = weights.kernel_size
         self.stride = int(stride)
         self.relu = int(bool(relu))
-        self.vecC, self.k_observed, self.k_score, self.k_score_features = feature_kernels(weights.channels)
+        kernels = feature_kernels(weights.channels)
+        self.vecC, self.k_observed, self.k_score, self.k_score_features, self.k_sums = kernels
         Wt, b = weights.folded()
         with wp.ScopedDevice(device):
             self.Wt = wp.array(Wt, dtype=self.vecC)
@@ -257,6 +258,10 @@ class FeatureScorer:
         """score_points' blocks for one reading of the render (seen), into out; `compare`: what every
         point is compared with, and how (kernel #2's trailing inputs); `exposed`: with the exposure
         term's gains (conv1's response split in two)."""
+        centre = compare[3].centre > 0.0
+        if centre and (exposed or self.relu or self.conv != "torch"):
+            raise PerchError("the centre term needs conv1's raw features kept per point: --conv torch, no --relu, "
+                             "no exposure term")  # fmt: skip
         if self.conv == "torch":
             bufs = self._take_buffers()
             try:
@@ -266,10 +271,17 @@ class FeatureScorer:
                 else:
                     feat = self._torch_features(image, seen, gboxes, bufs)
                     rest = self._dummy_feat
+                sums, counts = self._dummy_feat, self._dummy_feat
+                if centre:  # each candidate's mean features first, then the blended cosines
+                    C = int(self._t_weight.shape[0])
+                    sums = wp.zeros(2 * C * len(gboxes), dtype=float, device=self.device)
+                    counts = wp.zeros(len(gboxes), dtype=float, device=self.device)
+                    args = [feat, seen, pts, compare[1]]
+                    wp.launch(self.k_sums, dim=pts.n_points, inputs=args, outputs=[sums, counts])
                 wp.launch(
                     self.k_score_features,
                     dim=pts.n_points,
-                    inputs=[feat, seen, pts, self.relu, *compare, rest],
+                    inputs=[feat, seen, pts, self.relu, *compare, rest, sums, counts],
                     outputs=[out],
                 )
             finally:
@@ -366,12 +378,16 @@ def point_weights(
     edge: wp.array | None = None,
     outline: float = 0.0,
     rectified: float = 0.0,
+    centre: float = 0.0,
 ) -> PointWeights:
     """The photo's per-point maps for kernel #2, on gain's device: gain (rarity), offset (zeros when None),
     for the outline term its weight with the photo's normalised gradient per pixel (perch_warp.outline;
-    edge (H, W) vec2, needed when outline > 0), and the rectified term's weight (perch_warp.score_terms)."""
+    edge (H, W) vec2, needed when outline > 0), and the rectified and centre terms' weights
+    (perch_warp.score_terms)."""
     if not 0.0 <= rectified <= 1.0:
         raise PerchError(f"the rectified term's weight must be in [0, 1], got {rectified}")
+    if not 0.0 <= centre <= 1.0:
+        raise PerchError(f"the centre term's weight must be in [0, 1], got {centre}")
     if outline > 0.0 and edge is None:
         raise PerchError("the outline term needs the photo's edge map")
     pw = PointWeights()
@@ -380,6 +396,7 @@ def point_weights(
     pw.edge = edge if edge is not None else wp.zeros((1, 1), dtype=wp.vec2, device=gain.device)
     pw.outline = float(outline)
     pw.rectified = float(rectified)
+    pw.centre = float(centre)
     return pw
 
 

@@ -87,6 +87,15 @@ Terms (each off in `thesis`):
   interpolated vertex normal and l the table's normal (kernels/render.py: Shading): the top lit as
   the texture, the sides darker as they turn away. Colours change, not the formula, so the bound
   holds as it is (nor does it depend on them); the render costs one normal blend per hit.
+- ``centre`` c: the pattern inside the silhouette, not only its colours (a lead of stop 38's prototype,
+  docs/accuracy.md). conv1's cosine on a target's large flat regions is mostly a colour match, so an
+  object or a patch of the same colour scores like the target; what tells them apart is where the
+  print is. With c > 0 a point's cosine is (1 - c) cos(R, I) + c cos(R - Rm, I - Im), Rm and Im the
+  means of the candidate's conv1 features and of the photo's over its compared points (a first pass
+  of kernel #2 sums them), so a colour or brightness offset common to the candidate cancels from the
+  second cosine. A convex blend of two cosines is <= 1, so the bound holds as it is. Kernel #2's
+  torch form only (`--conv torch`, the CPU's auto), raw conv1 (not `--relu`); with shift r the
+  means are those of the undisplaced points. Not with exposure, tone, light or rectified.
 - ``shift`` r: the grid stage's tolerance of a misaligned grid (issue 17 (g)). A grid pose
   is up to half a step from the truth, and a small textured object's score peak is narrower
   than that; so a grid candidate is scored against the photo displaced by every (dx, dy) of
@@ -95,7 +104,8 @@ Terms (each off in `thesis`):
   Only the grid is scored so: the refinement below the grid compares undisplaced
   (ScoringService.refining), so the answer's pose and score are the plain score's.
 
-The pruned search stays exact for every score: cos <= 1 (a blend of two cosines with `rectified`) and gain >= 0 give
+The pruned search stays exact for every score: cos <= 1 (a blend of two cosines with `rectified` or
+`centre`) and gain >= 0 give
 value <= gain - offset (+ w * the largest |e| within one stride of the point with the outline
 term, perch_warp.outline) =: ceiling, pointwise on the silhouette, and the top-k sum is
 monotone in every value with the same k and the same positive divisor, so the
@@ -145,8 +155,13 @@ class ScoreTerms:
     tone: int = 0
     smooth: float = 0.0
     shade: float = 0.0
+    centre: float = 0.0
 
     def __post_init__(self) -> None:
+        if not (np.isfinite(self.centre) and 0.0 <= self.centre <= 1.0):
+            raise PerchError(f"score term centre must be in [0, 1], got {self.centre}")
+        if self.centre > 0.0 and (self.exposure > 0.0 or self.tone > 0 or self.light > 0.0 or self.rectified > 0.0):
+            raise PerchError("score term centre cannot be combined with exposure, tone, light or rectified")
         if not (np.isfinite(self.shade) and 0.0 <= self.shade <= 1.0):
             raise PerchError(f"score term shade must be in [0, 1], got {self.shade}")
         if not (np.isfinite(self.smooth) and 0.0 <= self.smooth <= MAX_SMOOTH):

@@ -224,6 +224,8 @@ def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(sce
         "tone=1,shift=1,surround=fill",
         "smooth=1.5,shift=1",
         "shade=0.8,shift=1",
+        "centre=0.5",
+        "centre=1.0,shift=1,surround=weighted",
     ],
 )
 def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
@@ -252,6 +254,7 @@ def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
         "exposure=1,shift=1",
         "tone=2,shift=1",
         "shade=0.8,shift=1",
+        "centre=0.5,shift=1",
     ],
 )
 def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights, score):

@@ -195,6 +195,15 @@ def test_both_conv_forms_give_the_same_scores(scene, caffe_weights):
         EngineConfig(conv="cudnn")
 
 
+def test_centre_term_needs_the_torch_form_and_raw_conv1(scene, random_weights):
+    """The centre term keeps each candidate's features to average them: kernel #2's torch form only."""
+    with pytest.raises(PerchError, match="use --conv torch"):
+        Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centre=0.5", conv="warp"))
+    with pytest.raises(PerchError, match="drop --relu"):
+        Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centre=0.5", conv="torch", relu=True))
+    Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centre=0.5", conv="torch"))
+
+
 def test_rectified_term_with_relu_is_refused(scene, random_weights):
     """The rectified term blends raw and rectified conv1; with --relu there are no raw features to blend."""
     with pytest.raises(PerchError, match="drop --relu"):

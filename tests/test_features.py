@@ -109,6 +109,7 @@ def _numpy_scores(
     rectified=0.0,
     render_gain=1.0,
     render_tone=1.0,
+    centre=0.0,
 ):
     """Reference: composite each window (onto the photo, or onto the preprocessing mean with fill), convolve
     in float64, cosine with the photo's feature `shift` = (dx, dy) grid cells away, times rarity there,
@@ -118,7 +119,9 @@ def _numpy_scores(
     by (stride + 1 - t) / stride). With `relu` both features are rectified (AlexNet's ReLU) before the cosine,
     which is 0 where either vanishes; with `rectified` b the cosine is (1 - b) cos + b (the rectified
     features' cosine). `render_gain` g: the rendered colours read g times as bright (the exposure term);
-    `render_tone` t: each rendered sRGB colour c read as srgb(min(1, t lin(c))) (the tone term)."""
+    `render_tone` t: each rendered sRGB colour c read as srgb(min(1, t lin(c))) (the tone term);
+    `centre` c: the cosine is (1 - c) cos + c cos(f - fm, fo - om), fm and om the means of the candidate's
+    and the photo's (unshifted) features over its compared points (the centre term)."""
     offset = np.zeros_like(rarity) if offset is None else offset
     norm = (img.astype(np.float64) / 255.0 - np.array(w.mean)) / np.array(w.std)
     W = w.weight.astype(np.float64)
@@ -142,20 +145,32 @@ def _numpy_scores(
         for yy, xx in zip(*np.nonzero(cmask), strict=True):
             if -half <= y0 + yy < comp.shape[0] + half and -half <= x0 + xx < comp.shape[1] + half:
                 full[y0 + yy + half, x0 + xx + half] = True
+
+        def compared(gx, gy, x0=x0, y0=y0, bw=bw, bh=bh, cmask=cmask):  # this candidate's box and mask
+            u, v = half + stride * gx, half + stride * gy
+            inside = x0 <= u < x0 + bw and y0 <= v < y0 + bh
+            if not (inside and cmask[v - y0, u - x0]):
+                return NOT_ON_MASK
+            return None if 0 <= gx < rarity.shape[1] and 0 <= gy < rarity.shape[0] else 0.0
+
+        def feature(arr, gx, gy):
+            u, v = half + stride * gx, half + stride * gy
+            return (W * arr[v - half : v + half + 1, u - half : u + half + 1].transpose(2, 0, 1)[None]).sum(
+                (1, 2, 3)
+            ) + w.bias
+
+        if centre:
+            cells = [(gx, gy) for gy in range(gy0, gy0 + gh) for gx in range(gx0, gx0 + gw) if compared(gx, gy) is None]
+            f_mean = np.mean([feature(compn, gx, gy) for gx, gy in cells], axis=0)
+            o_mean = np.mean([feature(norm, gx, gy) for gx, gy in cells], axis=0)
         for gy in range(gy0, gy0 + gh):
             for gx in range(gx0, gx0 + gw):
                 u, v = half + stride * gx, half + stride * gy
-                inside = x0 <= u < x0 + bw and y0 <= v < y0 + bh
-                if not (inside and cmask[v - y0, u - x0]):
-                    out.append(NOT_ON_MASK)
+                skip = compared(gx, gy)
+                if skip is not None:
+                    out.append(skip)
                     continue
-                if not (0 <= gx < rarity.shape[1] and 0 <= gy < rarity.shape[0]):
-                    out.append(0.0)
-                    continue
-                f = (W * compn[v - half : v + half + 1, u - half : u + half + 1].transpose(2, 0, 1)[None]).sum(
-                    (1, 2, 3)
-                )
-                f += w.bias
+                f = feature(compn, gx, gy)
                 if light:
                     f = _lit(W, w, comp[v - half : v + half + 1, u - half : u + half + 1], light)
                 hx, hy = gx + shift[0], gy + shift[1]
@@ -178,6 +193,10 @@ def _numpy_scores(
                     fr, gr = np.maximum(f, 0.0), np.maximum(fo, 0.0)
                     denom_r = np.linalg.norm(fr) * np.linalg.norm(gr)
                     cos = (1 - rectified) * cos + rectified * (fr @ gr / denom_r if denom_r > 1e-12 else 0.0)
+                if centre:
+                    fc, gc = f - f_mean, fo - o_mean
+                    denom_c = np.linalg.norm(fc) * np.linalg.norm(gc)
+                    cos = (1 - centre) * cos + centre * (fc @ gc / denom_c if denom_c > 1e-12 else 0.0)
                 value = cos * share * rarity[hy, hx] - offset[hy, hx]
                 if outline > 0:
                     value += outline * _numpy_outline(cmask, x0, y0, u, v, stride, edge, shift)
@@ -556,3 +575,28 @@ def test_light_makes_photo_features_brightness_invariant(random_weights):
     d = plain.observed_features(plain.image_to_device(img // 2)).numpy().astype(np.float64).reshape(-1, 96)
     cos = (c * d).sum(1) / np.linalg.norm(c, axis=1) / np.linalg.norm(d, axis=1)
     assert cos.min() < 0.99
+
+
+@pytest.mark.parametrize("surround,shift", [("photo", (0, 0)), ("fill", (1, -1)), ("weighted", (0, 1))])
+def test_centre_scores_equal_numpy_reference(random_weights, surround, shift):
+    """score_terms' centre (c = 0.6): kernel #2's torch form blends in the cosine of the candidate's
+    features and the photo's, each less its mean over the candidate's compared points (the undisplaced
+    ones, whatever the shift); the Warp form, which keeps no features, refuses it."""
+    stride = 3
+    sc = FeatureScorer(random_weights, DEVICE, stride, conv="torch", surround=surround)
+    img, boxes, pix_off, rgb, mask, batch, gboxes, rarity, image, obs, norms, _ = _case(7, sc)
+    pw = point_weights(wp.array(rarity, device=DEVICE), centre=0.6)
+    shifts = shift_array(1, DEVICE)
+    vals, pt_off = sc.score_points(image, batch, gboxes, obs, norms, pw, shifts)
+    got = vals.numpy().reshape(9, int(pt_off.numpy()[-1]))[[tuple(d) for d in shifts.numpy().tolist()].index(shift)]
+    kw = dict(fill=surround == "fill", weighted=surround == "weighted", shift=shift)
+    ref = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity, centre=0.6, **kw)
+    off = ref == NOT_ON_MASK
+    assert np.array_equal(got == NOT_ON_MASK, off) and 0 < off.sum() < len(ref)
+    assert np.abs(got[~off] - ref[~off]).max() < 1e-4
+    plain = _numpy_scores(img, rgb, mask, pix_off, boxes, gboxes, random_weights, stride, rarity, **kw)
+    assert np.abs(plain[~off] - ref[~off]).max() > 0.01  # the term changes the values
+    warp_sc = FeatureScorer(random_weights, DEVICE, stride, conv="warp", surround=surround)
+    img, boxes, pix_off, rgb, mask, batch, gboxes, rarity, image, obs, norms, _ = _case(7, warp_sc)
+    with pytest.raises(PerchError, match="centre term needs"):
+        warp_sc.score_points(image, batch, gboxes, obs, norms, pw)

@@ -59,6 +59,10 @@ def test_names_and_terms_parse():
         ("shade=1.5", "shade must be in"),
         ("shade=-0.1", "shade must be in"),
         ("shade=nan", "shade must be in"),
+        ("centre=1.5", "centre must be in"),
+        ("centre=nan", "centre must be in"),
+        ("centre=0.5,exposure=1", "centre cannot be combined"),
+        ("centre=0.5,rectified=0.5", "centre cannot be combined"),
     ],
 )
 def test_bad_terms_name_the_culprit(spec, culprit):

@@ -193,6 +193,7 @@ def photo_on_device(backends: Backends, config, terms: ScoreTerms, image_rgb, ca
             None if edge is None else wp.array(edge, dtype=wp.vec2),
             terms.outline,
             terms.rectified,
+            terms.centre,
         )
         # The thesis's ceiling is the rarity itself: the same array, so its bounds stay bit for bit.
         plain = terms.background == 0.0 and terms.outline == 0.0
