@@ -35,6 +35,8 @@ class SeenEstimator(FakeEstimator):
 def test_from_run_pools_the_best_seen_cells_and_the_truth(tmp_path):
     root = write_tiny_dataset(tmp_path / "ds")
     run_eval(root, tmp_path / "run", SeenEstimator())
+    with (tmp_path / "run" / "targets.jsonl").open("a") as f:  # a failed target's record: no heat map, no pool
+        f.write(json.dumps({"scene_id": 1, "im_id": 9, "inst": 0, "obj_id": 1, "failed": "boom"}) + "\n")
     tool = load_tool("score_study")
     assert tool.main(["from-run", str(tmp_path / "run"), "--out", str(tmp_path / "pool.json"), "--pool", "3"]) == 0
     pool = json.loads((tmp_path / "pool.json").read_text())

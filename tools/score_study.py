@@ -108,7 +108,7 @@ def from_run(args: argparse.Namespace) -> None:
     cfg = json.loads(cfg_path.read_text())
     ds = bop.open_dataset(cfg["dataset"], cfg.get("split", "test"), None)
     done = [json.loads(line) for line in journal.read_text().splitlines() if line.strip()]
-    keys = {(d["scene_id"], d["im_id"], d["inst"]) for d in done}
+    keys = {(d["scene_id"], d["im_id"], d["inst"]) for d in done if "failed" not in d}  # failures have no map
     sel = bop.select_targets(ds, sorted({k[0] for k in keys}))
     by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
     tables = bop.TableCache(cfg.get("table_source", "auto"))
@@ -116,6 +116,8 @@ def from_run(args: argparse.Namespace) -> None:
     for key in sorted(keys):
         im, tg = by_key[key]
         path = heatmap_path(run, key)
+        if not path.is_file():
+            raise PerchError(f"{path}: not found (the run's heat map of target {key}; was it run with this code?)")
         smap = ScoreMap.load(path)
         if smap.seen is None:
             raise PerchError(f"{path}: written before heat maps kept 'seen' (commit f0d8655); rerun the eval")
