@@ -135,9 +135,12 @@ class ScoreMap:
         return [cells[k] for k in distinct_peaks(cells, n, sep_steps * self.step_m)]
 
 
-def best_over_rest(k: Knowledge, xy_axes: tuple[int, int] = (0, 1)) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """(best, upper, argbest) per (x, y) cell: the maximum over every other axis of k's candidates, as
-    in ScoreMap (argbest: the flat index over the other axes of the best known candidate, -1 where none)."""
+def best_over_rest(
+    k: Knowledge, xy_axes: tuple[int, int] = (0, 1)
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(best, upper, argbest, seen) per (x, y) cell: the maximum over every other axis of k's candidates,
+    as in ScoreMap (argbest: the flat index over the other axes of the best known candidate, -1 where
+    none; seen: that candidate's score, -inf where none)."""
 
     def per_cell(a: np.ndarray) -> np.ndarray:
         a = np.moveaxis(a.reshape(k.shape), xy_axes, (0, 1))
@@ -152,24 +155,15 @@ def best_over_rest(k: Knowledge, xy_axes: tuple[int, int] = (0, 1)) -> tuple[np.
     exact = known_max >= top_unknown
     best = np.where(exact, known_max, np.nan)
     arg = np.where((~unknown).any(axis=2), arg, -1)
-    return best, np.maximum(known_max, top_unknown), arg
-
-
-def _seen(k: Knowledge, arg: np.ndarray) -> np.ndarray:
-    """Per (x, y) cell (k's axes x and y first), the score of its best scored candidate `arg`
-    (best_over_rest's; -1: none scored, -inf there)."""
-    v = k.value.reshape(k.shape[0], k.shape[1], -1)
-    got = np.take_along_axis(v, np.clip(arg, 0, None)[..., None], axis=2)[..., 0]
-    return np.where(arg >= 0, got, -np.inf)
+    return best, np.maximum(known_max, top_unknown), arg, known_max
 
 
 def score_map(k: Knowledge, space: SearchSpace) -> ScoreMap:
     """The ScoreMap of a (x, y, yaw) space from what its search knows."""
     xs, ys, yaws = space.axes()
-    best, upper, arg = best_over_rest(k)
-    yaw = np.where(np.isfinite(best), yaws[np.clip(arg, 0, None)], np.nan)
-    seen = _seen(k, arg)
+    best, upper, arg, seen = best_over_rest(k)
     seen_yaw = np.where(arg >= 0, yaws[np.clip(arg, 0, None)], np.nan)
+    yaw = np.where(np.isfinite(best), seen_yaw, np.nan)  # the best, where known, is the best seen
     why = k.why_unknown if np.isnan(best).any() else ""
     return ScoreMap(xs, ys, space.xy_step_m, best, upper, yaw, why, seen, seen_yaw)
 
@@ -191,12 +185,11 @@ def score_map_over_rests(ks: list[Knowledge], space: SearchSpace) -> tuple[Score
     best over resting pose and yaw per cell; and, per cell, the index of the pose of that best (-1 where
     the cell's best is not finite)."""
     xs, ys, yaws = space.axes()
-    k = stacked(ks)
-    best, upper, arg = best_over_rest(k)
+    best, upper, arg, seen = best_over_rest(stacked(ks))
     finite = np.isfinite(best)
     pose, k_yaw = np.divmod(np.clip(arg, 0, None), len(yaws))
-    yaw = np.where(finite, yaws[k_yaw], np.nan)
     seen_yaw = np.where(arg >= 0, yaws[k_yaw], np.nan)
+    yaw = np.where(finite, seen_yaw, np.nan)
     why = next((k.why_unknown for k in ks if k.why_unknown), "") if np.isnan(best).any() else ""
-    smap = ScoreMap(xs, ys, space.xy_step_m, best, upper, yaw, why, _seen(k, arg), seen_yaw)
+    smap = ScoreMap(xs, ys, space.xy_step_m, best, upper, yaw, why, seen, seen_yaw)
     return smap, np.where(finite, pose, -1)

@@ -89,12 +89,12 @@ def test_best_over_rest_takes_any_extra_axis_and_never_invents_values():
     # (x, y, rest, yaw) = (2, 1, 2, 2): cell 0 all known; cell 1 has an unknown whose bound beats the known.
     value = np.array([0.1, 0.5, 0.2, -np.inf, 0.3, np.nan, 0.1, 0.2])
     upper = np.array([0.1, 0.5, 0.2, -np.inf, 0.3, 0.9, 0.1, 0.2])
-    best, up, arg = best_over_rest(Knowledge(value, upper, (2, 1, 2, 2), "pruned"))
+    best, up, arg, _ = best_over_rest(Knowledge(value, upper, (2, 1, 2, 2), "pruned"))
     assert best[0, 0] == 0.5 and arg[0, 0] == 1 and up[0, 0] == 0.5
     assert np.isnan(best[1, 0]) and up[1, 0] == 0.9
     # With the bound below the known best, the cell's best is known exactly.
     upper[5] = 0.25
-    best, _, arg = best_over_rest(Knowledge(value, upper, (2, 1, 2, 2), "pruned"))
+    best, _, arg, _ = best_over_rest(Knowledge(value, upper, (2, 1, 2, 2), "pruned"))
     assert best[1, 0] == 0.3 and arg[1, 0] == 0
 
 
