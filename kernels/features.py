@@ -327,6 +327,14 @@ def read_at_exposure(rgb: wp.array(dtype=wp.vec3), gain: float, out: wp.array(dt
     out[i] = lit(rgb[i], gain)
 
 
+@wp.kernel(enable_backward=False)
+def sums_to_means(counts: wp.array(dtype=float), per_candidate: int, sums: wp.array(dtype=float)):
+    """The centre term's sums (candidate_sums: per_candidate of them per candidate) divided by their
+    candidate's count of points, in place, once per candidate rather than at each of its points."""
+    i = wp.tid()
+    sums[i] = sums[i] / wp.max(counts[i // per_candidate], 1.0)
+
+
 @functools.cache
 def feature_kernels(C: int):
     """(vecC, observed_features, score_points, score_features, candidate_sums) for C output channels."""
@@ -373,13 +381,7 @@ def feature_kernels(C: int):
         if pw.centre > 0.0:
             cos = (1.0 - pw.centre) * cos + pw.centre * cosine(f - f_mean, g - g_mean)
         if pw.rectified > 0.0:
-            fr = rectified(f, 1)
-            gr = rectified(g, 1)
-            denom_r = wp.length(fr) * wp.length(gr)
-            cos_r = float(0.0)
-            if denom_r > 1.0e-12:
-                cos_r = wp.dot(fr, gr) / denom_r
-            cos = (1.0 - pw.rectified) * cos + pw.rectified * cos_r
+            cos = (1.0 - pw.rectified) * cos + pw.rectified * cosine(rectified(f, 1), rectified(g, 1))
         if share < 1.0:
             cos = cos * share
         return cos * pw.gain[gy, gx] - pw.offset[gy, gx]
@@ -585,16 +587,16 @@ def feature_kernels(C: int):
         shifts: wp.array(dtype=wp.vec2i),
         gains: wp.array(dtype=float),
         feat_rest: wp.array(dtype=float),
-        sums: wp.array(dtype=float),
-        counts: wp.array(dtype=float),
+        means: wp.array(dtype=float),
         out: wp.array(dtype=float),
     ):
         """score_points' values from features convolved elsewhere: candidate c's conv1 output as C
         planes of its points (row by row in its grid box) from C pts.pt_off[c] in feat; the same points
         on and off the mask, the same cosine, the same shifts. With the exposure term (gains: more
         than one), feat holds the response to the rendered pixels alone and feat_rest, laid out alike,
-        the bias plus the rest's (conv_split's a and q). With the centre term, sums and counts are
-        candidate_sums' (its features' and the photo's means over its compared points)."""
+        the bias plus the rest's (conv_split's a and q). With the centre term, means holds each
+        candidate's features' and the photo's means over its compared points (candidate_sums, then
+        sums_to_means)."""
         i = wp.tid()
         compared, value, c, gx, gy, u, v = point_to_compare(seen, pts, obs_feat.shape[0], obs_feat.shape[1], i)
         if not compared:
@@ -615,10 +617,9 @@ def feature_kernels(C: int):
         f_mean = vecC()
         g_mean = vecC()
         if pw.centre > 0.0:
-            k = wp.max(counts[c], 1.0)
             for ch in range(C):
-                f_mean[ch] = sums[2 * C * c + ch] / k
-                g_mean[ch] = sums[2 * C * c + C + ch] / k
+                f_mean[ch] = means[2 * C * c + ch]
+                g_mean[ch] = means[2 * C * c + C + ch]
         compared_values(
             f, q, gains, relu, obs_feat, obs_norm, pw, gx, gy, share, shifts, pts.n_points, i, rim, pts.stride,
             f_mean, g_mean, out,

@@ -20,6 +20,7 @@ from .kernels.features import (
     composite_crops,
     feature_kernels,
     read_at_exposure,
+    sums_to_means,
 )
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
 from .kernels.render import RenderedBoxes
@@ -271,17 +272,18 @@ class FeatureScorer:
                 else:
                     feat = self._torch_features(image, seen, gboxes, bufs)
                     rest = self._dummy_feat
-                sums, counts = self._dummy_feat, self._dummy_feat
+                means = self._dummy_feat
                 if centre:  # each candidate's mean features first, then the blended cosines
                     C = int(self._t_weight.shape[0])
-                    sums = wp.zeros(2 * C * len(gboxes), dtype=float, device=self.device)
+                    means = wp.zeros(2 * C * len(gboxes), dtype=float, device=self.device)
                     counts = wp.zeros(len(gboxes), dtype=float, device=self.device)
                     args = [feat, seen, pts, compare[1]]
-                    wp.launch(self.k_sums, dim=pts.n_points, inputs=args, outputs=[sums, counts])
+                    wp.launch(self.k_sums, dim=pts.n_points, inputs=args, outputs=[means, counts])
+                    wp.launch(sums_to_means, dim=len(means), inputs=[counts, 2 * C], outputs=[means])
                 wp.launch(
                     self.k_score_features,
                     dim=pts.n_points,
-                    inputs=[feat, seen, pts, self.relu, *compare, rest, sums, counts],
+                    inputs=[feat, seen, pts, self.relu, *compare, rest, means],
                     outputs=[out],
                 )
             finally:
