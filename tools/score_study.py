@@ -42,6 +42,7 @@ import numpy as np
 from perch_warp import bop, pose_error
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
+from perch_warp.eval import journal
 from perch_warp.eval.plots import heatmap_path
 from perch_warp.features import load_feature_weights
 from perch_warp.image import load_rgb
@@ -101,19 +102,17 @@ def collect(args: argparse.Namespace) -> None:
 
 def from_run(args: argparse.Namespace) -> None:
     run = Path(args.run)
-    cfg_path, journal = run / "eval_config.json", run / "targets.jsonl"
-    for f in (cfg_path, journal):
+    for f in (run / journal.CONFIG_FILE, run / journal.JOURNAL_FILE):
         if not f.is_file():
             raise PerchError(f"{f}: not found (from-run reads a perch_warp eval output folder)")
-    cfg = json.loads(cfg_path.read_text())
+    cfg = json.loads((run / journal.CONFIG_FILE).read_text())
     ds = bop.open_dataset(cfg["dataset"], cfg.get("split", "test"), None)
-    done = [json.loads(line) for line in journal.read_text().splitlines() if line.strip()]
-    keys = {(d["scene_id"], d["im_id"], d["inst"]) for d in done if "failed" not in d}  # failures have no map
-    sel = bop.select_targets(ds, sorted({k[0] for k in keys}))
+    sel = bop.select_targets(ds)
+    done, _, _ = journal.load_state(run, sel)  # eval's own reader: finished targets only, not failures
     by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
     tables = bop.TableCache(cfg.get("table_source", "auto"))
     rows = []
-    for key in sorted(keys):
+    for key in sorted(done):
         im, tg = by_key[key]
         path = heatmap_path(run, key)
         if not path.is_file():
