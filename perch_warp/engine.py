@@ -91,7 +91,7 @@ class Engine:
         self.device_mesh = DeviceMesh(mesh, self.device, self.terms.texture)
         self._renderers: dict[str, Renderer] = {}
         self.renderer_for(self.default_renderer)  # built now: BVH construction is not a search stage's
-        conv = self.config.conv if self.config.conv != "auto" else auto_conv(self.device)
+        conv = self.config.conv if self.config.conv != "auto" else auto_conv(self.device, self.terms.centre)
         if self.terms.centre > 0.0 and (conv != "torch" or self.config.relu):
             raise PerchError(
                 f"score {self.config.score!r} centres each candidate's features (centre={self.terms.centre}), "

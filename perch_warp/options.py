@@ -117,7 +117,7 @@ def _add_compute_arguments(g) -> None:
         choices=["auto", "warp", "torch"],
         help="how candidates' conv1 features are computed: warp (in the scoring kernel, point by point) or "
         "torch (conv2d on each candidate's composited crop; the same values up to float rounding); "
-        "auto (default): torch on the CPU, warp on a GPU",
+        "auto (default): torch on the CPU, warp on a GPU unless the score has the centre term",
     )
     g.add_argument(
         "--batch-pixels", type=int, default=None, help="rendered pixels per batch (default: sized to the device)"

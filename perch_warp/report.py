@@ -40,7 +40,10 @@ def conv_line(result) -> str:
     """Which form of kernel #2's convolution ran, and whether auto chose it."""
     info = result.info
     how = {"torch": "torch conv2d on each candidate's crop", "warp": "Warp kernel, point by point"}[info.conv]
-    why = f" (auto on {result.device})" if info.conv_option == "auto" else ""
+    why = ""
+    if info.conv_option == "auto":
+        gpu_torch = info.conv == "torch" and not result.device.startswith("cpu")
+        why = f" (auto on {result.device}" + (": the score's centre term needs it)" if gpu_torch else ")")
     return f"features: conv1 by {how}{why}; score: {info.score}"
 
 

@@ -94,7 +94,7 @@ Terms (each off in `thesis`):
   means of the candidate's conv1 features and of the photo's over its compared points (a first pass
   of kernel #2 sums them), so a colour or brightness offset common to the candidate cancels from the
   second cosine. A convex blend of two cosines is <= 1, so the bound holds as it is. Kernel #2's
-  torch form only (`--conv torch`, the CPU's auto), raw conv1 (not `--relu`); with shift r the
+  torch form only (`--conv auto` picks it for this term on a GPU too), raw conv1 (not `--relu`); with shift r the
   means are those of the undisplaced points. Not with exposure, tone, light or rectified.
 - ``shift`` r: the grid stage's tolerance of a misaligned grid (issue 17 (g)). A grid pose
   is up to half a step from the truth, and a small textured object's score peak is narrower

@@ -204,6 +204,25 @@ def test_centre_term_needs_the_torch_form_and_raw_conv1(scene, random_weights):
     Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centre=0.5", conv="torch"))
 
 
+def test_auto_conv_keeps_features_for_the_centre_term(monkeypatch):
+    """conv "auto" is torch on the CPU and warp on a GPU, except that a centred score needs the torch form there
+    too (it keeps each candidate's features); the CLI's line says why."""
+    import types
+
+    from perch_warp import score
+    from perch_warp.report import conv_line
+
+    assert score.auto_conv("cpu") == score.auto_conv("cpu", 0.5) == "torch"
+    monkeypatch.setattr(score.wp, "get_device", lambda device: types.SimpleNamespace(is_cpu=False))
+    assert score.auto_conv("cuda:0") == "warp"
+    assert score.auto_conv("cuda:0", 0.5) == "torch"
+    info = types.SimpleNamespace(conv="torch", conv_option="auto", score="centre=0.5")
+    result = types.SimpleNamespace(device="cuda:0", info=info)
+    assert "centre term needs it" in conv_line(result)
+    result.info.conv_option = "torch"
+    assert "auto" not in conv_line(result)
+
+
 def test_rectified_term_with_relu_is_refused(scene, random_weights):
     """The rectified term blends raw and rectified conv1; with --relu there are no raw features to blend."""
     with pytest.raises(PerchError, match="drop --relu"):
