@@ -66,9 +66,10 @@ class EngineConfig:
     # CPU (measured faster there), warp on a GPU (torch is not measured there).
     conv: str = "auto"
     # What a candidate's score is made of (perch_warp.score_terms): a name ("thesis": the thesis's
-    # formula; "grid-tolerant": the same with a grid stage that tolerates a one-cell misalignment,
-    # chosen on the development set, docs/accuracy.md) or terms over the thesis's, e.g. "shift=1,shrink=16".
-    score: str = "grid-tolerant"
+    # formula; "grid-tolerant": the same with a grid stage that tolerates a one-cell misalignment;
+    # "centred": grid-tolerant with the centred cosine blended in, chosen on the development set,
+    # docs/accuracy.md) or terms over the thesis's, e.g. "shift=1,shrink=16".
+    score: str = "centred"
 
     def __post_init__(self) -> None:
         parse_score(self.score)  # fails early, with the terms it knows

@@ -97,6 +97,7 @@ class Engine:
                 f"score {self.config.score!r} centres each candidate's features (centre={self.terms.centre}), "
                 f"which kernel #2's torch form does on raw conv1 alone: use --conv torch"
                 + (" and drop --relu" if self.config.relu else "")
+                + ", or a score without it (e.g. --score grid-tolerant)"
             )
         self.scorer = FeatureScorer(
             smoothed(weights, self.terms.smooth),

@@ -100,13 +100,15 @@ def test_rest_stable_names_the_face_down_and_its_height(scene_dir, caffe_weights
     out = tmp_path / "r.json"
     gx, gy, _ = sc.truth_xy_yaw
     x, y = round(gx, 2), round(gy, 2)
-    space = ["--x-range", f"{x - 0.01}", f"{x + 0.01}", "--y-range", f"{y - 0.01}", f"{y + 0.01}", "--yaw-step", "30"]
+    # A 10 deg yaw grid: the default (centred) score's peak is narrower in yaw than the thesis's, and on a
+    # 30 deg grid this box's upright peak falls between grid yaws and a side-down pose wins (docs/accuracy.md).
+    space = ["--x-range", f"{x - 0.01}", f"{x + 0.01}", "--y-range", f"{y - 0.01}", f"{y + 0.01}", "--yaw-step", "10"]
     args = _args(d, *space, "--weights", "caffe", "--out", str(out), "--refine-yaw", "5", "--refine-xy", "0.005")
     assert main(args) == 0  # no --truth, no --rest: every stable pose of the box
     res = json.loads(out.read_text())
     assert res["rest"] == "stable" and res["resting"]["label"] == "model -z down"
     assert res["resting"]["z_m"] == pytest.approx(0.025) and len(res["resting"]["searched"]) == 6
-    assert res["pose"]["rest"] == "model -z down" and res["n_candidates"] == 6 * 3 * 3 * 12
+    assert res["pose"]["rest"] == "model -z down" and res["n_candidates"] == 6 * 3 * 3 * 36
     stdout = capsys.readouterr().out
     assert "resting: model -z down, model origin 0.0250 m above the table (best of 6 stable resting poses)" in stdout
 

@@ -15,6 +15,7 @@ from perch_warp.errors import PerchError
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
 from perch_warp.pose_error import adi
+from perch_warp.score_terms import parse_score
 from perch_warp.search.base import top_indices
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import Table, decompose_on_table, model_to_camera
@@ -202,6 +203,11 @@ def test_centre_term_needs_the_torch_form_and_raw_conv1(scene, random_weights):
     with pytest.raises(PerchError, match="drop --relu"):
         Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centre=0.5", conv="torch", relu=True))
     Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centre=0.5", conv="torch"))
+    # The default score has the term, so the error names a score without it as well.
+    assert parse_score(EngineConfig().score)[1].centre > 0.0
+    with pytest.raises(PerchError, match="drop --relu, or a score without it .e.g. --score grid-tolerant"):
+        Engine(scene.mesh, random_weights, DEVICE, EngineConfig(relu=True))
+    Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="grid-tolerant", relu=True))
 
 
 def test_auto_conv_keeps_features_for_the_centre_term(monkeypatch):

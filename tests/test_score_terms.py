@@ -17,6 +17,7 @@ def test_names_and_terms_parse():
     assert parse_score("shift=1,shrink=8") == ("shrink=8.0,shift=1", ScoreTerms(shrink=8.0, shift=1))
     assert set(SCORES) >= {"thesis", "grid-tolerant"}
     assert parse_score("grid-tolerant") == ("grid-tolerant", ScoreTerms(shift=1))
+    assert parse_score("centred") == ("centred", ScoreTerms(shift=1, centre=0.5))
     assert parse_score("shift=1,outline=0.25") == ("shift=1,outline=0.25", ScoreTerms(shift=1, outline=0.25))
 
 

@@ -233,14 +233,15 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
         "--conv",
         default="auto",
         choices=["auto", "warp", "torch"],
-        help="kernel #2's conv1: warp or torch (same values up to rounding); auto: torch on the CPU, warp on a GPU",
+        help="kernel #2's conv1: warp or torch (same values up to rounding); auto: torch on the CPU, warp on a GPU "
+        "unless the score has the centre term",
     )
     m.add_argument("--image-scale", type=float, default=1.0, help="search on the photo resized by this factor")
     m.add_argument(
         "--score",
-        default="grid-tolerant",
+        default="centred",
         metavar="NAME|TERMS",
-        help="the score, as the CLI's --score (default: grid-tolerant)",
+        help="the score, as the CLI's --score (default: centred)",
     )
     m.add_argument("--cpu-threads", type=int, default=None, help="CPU device: batches at once (default: one per core)")
     m.add_argument(
