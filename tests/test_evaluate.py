@@ -430,6 +430,23 @@ def test_kill_9_mid_run_then_resume_gives_the_full_result(tmp_path):
     assert len(_journal(out)) == 5 and not list(out.glob(".*.tmp"))
 
 
+def test_resume_removes_the_temporaries_a_killed_run_left(tmp_path, capsys):
+    """A run killed between atomic_write's mkstemp and its rename leaves `.NAME.*.tmp` in OUTDIR: the
+    next run, holding the folder's lock, removes them and says so; it leaves other files alone."""
+    root = write_tiny_dataset(tmp_path / "ds")
+    out = tmp_path / "out"
+    first = run_eval(root, out, FakeEstimator())
+    stale = [out / ".results.csv.k3x9q1.tmp", out / ".targets.jsonl.a8b2c0.tmp"]
+    for t in stale:
+        t.write_text("half-writ")
+    (out / "notes.tmp").write_text("the user's")
+    capsys.readouterr()
+    again = run_eval(root, out, FakeEstimator())
+    assert not any(t.exists() for t in stale) and (out / "notes.tmp").exists()
+    assert "removed 2 temporary file(s)" in capsys.readouterr().err
+    assert again["pooled"]["auc"] == pytest.approx(first["pooled"]["auc"])
+
+
 def test_rest_stable_reaches_the_estimator_and_is_recorded(tmp_path, monkeypatch, capsys):
     root = write_tiny_dataset(tmp_path / "ds")
     est, seen = FakeEstimator(), []

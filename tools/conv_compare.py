@@ -50,7 +50,9 @@ def main(argv: list[str] | None = None) -> int:
     w = load_workload(dataset, args.scene, args.image, args.obj, 1.0, 0.01, 0.1)
     try:
         weights = load_feature_weights(args.weights)
-        engines = {conv: Engine(w.mesh, weights, args.device, EngineConfig(conv=conv)) for conv in ("warp", "torch")}
+        # grid-tolerant: the default score's centre term runs in the torch form alone (score_terms: centre).
+        config = {conv: EngineConfig(conv=conv, score="grid-tolerant") for conv in ("warp", "torch")}
+        engines = {conv: Engine(w.mesh, weights, args.device, config[conv]) for conv in ("warp", "torch")}
     except PerchError as e:
         print(f"conv_compare: error: {e}", file=sys.stderr)
         return 1

@@ -21,7 +21,7 @@ from ..errors import PerchError
 from ..image import load_rgb
 from ..mesh import load_mesh as load_mesh_file
 from ..options import SearchTooLarge
-from ..outputs import atomic_write, atomic_write_text, check_output_dir, folder_lock
+from ..outputs import atomic_write, atomic_write_text, check_output_dir, folder_lock, remove_stale_temporaries
 from ..resting import DEFAULT_ROLL_STEP_DEG, stable_rests
 from ..search_space import SearchSpace
 from ..table import RestingPose, Table, decompose_on_table
@@ -260,6 +260,14 @@ def _evaluate_locked(
         "options": options or {},
     }
     check_config(out_dir, config, restart)
+    # A run killed mid-write (kill -9, power loss) leaves its temporary; the lock says no writer is alive.
+    stale = remove_stale_temporaries(out_dir)
+    if stale:
+        names = ", ".join(t.name for t in stale)
+        print(
+            f"note: removed {len(stale)} temporary file(s) an interrupted run left in {out_dir}: {names}",
+            file=sys.stderr,
+        )
     repair_journal(out_dir)
     done, foreign, failed = load_state(out_dir, selection)
     tables = TableCache(table_source)
