@@ -63,7 +63,8 @@ class EngineConfig:
     renderer: str = "auto"
     # How kernel #2 convolves the candidates' windows (perch_warp.score): "warp", "torch" (conv2d on
     # each candidate's composited crop; the same values up to float rounding), or "auto": torch on the
-    # CPU (measured faster there), warp on a GPU (torch is not measured there).
+    # CPU (measured faster there), warp on a GPU (torch is not measured there) unless the score has the
+    # centre term, as the default has, which only the torch form computes (score.auto_conv).
     conv: str = "auto"
     # What a candidate's score is made of (perch_warp.score_terms): a name ("thesis": the thesis's
     # formula; "grid-tolerant": the same with a grid stage that tolerates a one-cell misalignment;
