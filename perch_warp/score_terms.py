@@ -212,6 +212,10 @@ class ScoreTerms:
             if getattr(self, f.name) != getattr(base, f.name)
         )
 
+    def spec(self) -> str:
+        """These terms as a --score value that parse_score reads back: describe(), or "thesis"."""
+        return self.describe() or "thesis"
+
 
 SCORES: dict[str, ScoreTerms] = {
     "thesis": ScoreTerms(),
@@ -246,7 +250,7 @@ def parse_score(spec: str) -> tuple[str, ScoreTerms]:
         except ValueError:
             raise PerchError(f"score term {key} needs a {kind}, got {raw!r}") from None
     terms = ScoreTerms(**values)
-    return terms.describe() or "thesis", terms
+    return terms.spec(), terms
 
 
 def exposure_gains(stops: float) -> np.ndarray:

@@ -20,10 +20,8 @@ from perch_warp.refine import cell_space
 from perch_warp.score_terms import parse_score
 from perch_warp.search_space import SearchSpace
 
-
-def below_grid(score: str) -> str:
-    """The score the refinement below the grid uses for `score`: its terms less the grid's shift."""
-    return parse_score(score)[1].below_grid().describe() or "thesis"
+# The score the refinement below the grid uses: the default's terms less the grid's shift.
+REFINE_SCORE = parse_score(EngineConfig().score)[1].below_grid().spec()
 
 
 @pytest.fixture(scope="module")
@@ -94,7 +92,7 @@ def test_refined_peaks_win_over_the_grid_best_alone(scene, caffe_weights):
     assert many.score == max(p["score"] for p in peaks)
     # Each peak's refined score is the best score of its cell, scored pose by pose, under the score the
     # refinement uses: the default's without the grid's shift tolerance.
-    e = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(**{**fine, "score": below_grid(EngineConfig().score)}))
+    e = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(**{**fine, "score": REFINE_SCORE}))
     for p in peaks:
         f = p["from"]
         yaw = math.radians(f["yaw_deg"])
@@ -178,9 +176,7 @@ def test_refine_yaws_refines_each_yaw_peak_of_the_place(scene, caffe_weights):
     assert [round(math.degrees(yaws[i]), 6) for i in chosen] == [round(v, 6) for v in peak["yaws_deg"]]
     best = -np.inf
     # Below the grid: the default score without its grid shift.
-    plain = Engine(
-        scene.mesh, caffe_weights, DEVICE, EngineConfig(**{**fine, "score": below_grid(EngineConfig().score)})
-    )
+    plain = Engine(scene.mesh, caffe_weights, DEVICE, EngineConfig(**{**fine, "score": REFINE_SCORE}))
     for i in chosen:
         cell = cell_space(space, f["x_m"], f["y_m"], float(yaws[i]), fine["refine_xy_m"], fine["refine_yaw_rad"])
         best = max(best, plain.score(scene.image, scene.camera, scene.table, scene.resting, *cell.candidates()).max())

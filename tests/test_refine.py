@@ -13,10 +13,8 @@ from perch_warp.refine import cell_space, fine_steps
 from perch_warp.score_terms import parse_score
 from perch_warp.search_space import FULL_CIRCLE, SearchSpace
 
-
-def below_grid(score: str) -> str:
-    """The score the refinement below the grid uses for `score`: its terms less the grid's shift."""
-    return parse_score(score)[1].below_grid().describe() or "thesis"
+# The score the refinement below the grid uses: the default's terms less the grid's shift.
+REFINE_SCORE = parse_score(EngineConfig().score)[1].below_grid().spec()
 
 
 def _ang(a, b):
@@ -88,7 +86,7 @@ def test_engine_refines_the_photographed_box_below_its_grid(scene, caffe_weights
     # The independent reference: every pose of the cell scored by the exhaustive search.
     cell = cell_space(space, grid.x_m, grid.y_m, grid.yaw_rad, 0.002, math.radians(3.0))
     # The refinement scores with the default score's terms less its grid shift.
-    ex_cfg = EngineConfig(search="exhaustive", refine=False, top_k=1, score=below_grid(EngineConfig().score))
+    ex_cfg = EngineConfig(search="exhaustive", refine=False, top_k=1, score=REFINE_SCORE)
     ex = Engine(scene.mesh, caffe_weights, DEVICE, ex_cfg).estimate(
         scene.image, scene.camera, scene.table, scene.resting, cell
     )

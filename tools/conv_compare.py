@@ -51,8 +51,10 @@ def main(argv: list[str] | None = None) -> int:
     try:
         weights = load_feature_weights(args.weights)
         # grid-tolerant: the default score's centre term runs in the torch form alone (score_terms: centre).
-        config = {conv: EngineConfig(conv=conv, score="grid-tolerant") for conv in ("warp", "torch")}
-        engines = {conv: Engine(w.mesh, weights, args.device, config[conv]) for conv in ("warp", "torch")}
+        engines = {
+            conv: Engine(w.mesh, weights, args.device, EngineConfig(conv=conv, score="grid-tolerant"))
+            for conv in ("warp", "torch")
+        }
     except PerchError as e:
         print(f"conv_compare: error: {e}", file=sys.stderr)
         return 1

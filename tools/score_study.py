@@ -242,7 +242,7 @@ def _engines(mesh, weights, spec: str) -> tuple[Engine, Engine]:
     grid = Engine(mesh, weights, "cpu", cfg)
     if grid.terms.shift == 0:
         return grid, grid
-    plain = grid.terms.below_grid().describe() or "thesis"
+    plain = grid.terms.below_grid().spec()
     return grid, Engine(mesh, weights, "cpu", dataclasses.replace(cfg, score=plain))
 
 
