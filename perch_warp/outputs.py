@@ -83,10 +83,10 @@ def atomic_write(path: str | Path, write: Callable[[IO[bytes]], None]) -> None:
 
 
 def remove_stale_temporaries(folder: str | Path) -> list[Path]:
-    """Remove the temporaries (`.NAME.*.tmp`) that atomic_write left in `folder` when its process was
-    killed between mkstemp and rename; returns them. Only under the folder's lock (folder_lock): a
-    live writer's temporary would otherwise go too."""
-    stale = sorted(Path(folder).glob(".*.tmp"))
+    """Remove the temporaries (`.NAME.*.tmp`) that atomic_write left in `folder` or below it (eval's
+    heatmaps/) when its process was killed between mkstemp and rename; returns them. Only under the
+    folder's lock (folder_lock): a live writer's temporary would otherwise go too."""
+    stale = sorted(Path(folder).rglob(".*.tmp"))
     for tmp in stale:
         with contextlib.suppress(FileNotFoundError):
             tmp.unlink()

@@ -437,13 +437,15 @@ def test_resume_removes_the_temporaries_a_killed_run_left(tmp_path, capsys):
     out = tmp_path / "out"
     first = run_eval(root, out, FakeEstimator())
     stale = [out / ".results.csv.k3x9q1.tmp", out / ".targets.jsonl.a8b2c0.tmp"]
+    stale.append(out / "heatmaps" / ".000001_000001_0.npz.p0q7zz.tmp")  # eval writes heat maps there
+    stale[-1].parent.mkdir(exist_ok=True)
     for t in stale:
         t.write_text("half-writ")
     (out / "notes.tmp").write_text("the user's")
     capsys.readouterr()
     again = run_eval(root, out, FakeEstimator())
     assert not any(t.exists() for t in stale) and (out / "notes.tmp").exists()
-    assert "removed 2 temporary file(s)" in capsys.readouterr().err
+    assert "removed 3 temporary file(s)" in capsys.readouterr().err
     assert again["pooled"]["auc"] == pytest.approx(first["pooled"]["auc"])
 
 
