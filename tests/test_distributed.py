@@ -78,7 +78,6 @@ def test_ray_missing_says_how_to_install_in_one_line(tmp_path, monkeypatch, caps
     assert err.count("\n") == 0 and "pip install -e '.[ray]'" in err
 
 
-
 def test_eval_ray_hands_the_resting_pose_mode_to_the_workers(tmp_path, monkeypatch, capsys):
     """`eval --ray --rest stable --roll-step 45` builds the Ray runner for those stable poses."""
     pytest.importorskip("ray")

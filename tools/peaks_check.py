@@ -79,10 +79,23 @@ def collect(args: argparse.Namespace) -> None:
         pos = top_location_candidates(flat, out.scores, len(space.axes()[2]), POOL_LOCATIONS)
         x, y, yaw = space.at(pos)
         pool = [[float(x[n]), float(y[n]), float(yaw[n]), float(out.scores[i])] for n, i in enumerate(pos)]
-        rows.append({"key": list(tg.key), "obj_id": tg.obj_id, "gt": [gx, gy, gyaw], "pool": pool,
-                     "scored": out.evaluated, "candidates": len(space), "seconds": time.perf_counter() - t})
-        print(f"{tg.key} obj {tg.obj_id}: {len(space)} candidates, {out.evaluated} scored, "
-              f"{time.perf_counter() - t:.0f} s", file=sys.stderr, flush=True)
+        rows.append(
+            {
+                "key": list(tg.key),
+                "obj_id": tg.obj_id,
+                "gt": [gx, gy, gyaw],
+                "pool": pool,
+                "scored": out.evaluated,
+                "candidates": len(space),
+                "seconds": time.perf_counter() - t,
+            }
+        )
+        print(
+            f"{tg.key} obj {tg.obj_id}: {len(space)} candidates, {out.evaluated} scored, "
+            f"{time.perf_counter() - t:.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
         _write(args.out, {"dataset": args.dataset, "score": args.score, "targets": rows})
 
 
@@ -159,9 +172,12 @@ def refine_all(args: argparse.Namespace) -> None:
         done.append({"key": list(tg.key), "obj_id": tg.obj_id, "errors": errors, "refined": n_refined})
         base = errors[_name(plan[0])][0]
         best = min(errors.items(), key=lambda e: e[1][0])
-        print(f"{tg.key} obj {tg.obj_id}: ADD-S {100 * base:.1f} cm at K=M=1, best {best[0]} "
-              f"{100 * best[1][0]:.1f} cm; {n_refined} refinements, {time.perf_counter() - t:.0f} s",
-              file=sys.stderr, flush=True)
+        print(
+            f"{tg.key} obj {tg.obj_id}: ADD-S {100 * base:.1f} cm at K=M=1, best {best[0]} "
+            f"{100 * best[1][0]:.1f} cm; {n_refined} refinements, {time.perf_counter() - t:.0f} s",
+            file=sys.stderr,
+            flush=True,
+        )
         if args.out:
             _write(args.out, {"pool": str(args.pool), "targets": done})
     print(json.dumps(summarise(done, [_name(p) for p in plan]), indent=1))
