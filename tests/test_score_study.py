@@ -9,6 +9,7 @@ from test_bop import write_tiny_dataset
 from test_evaluate import FakeEstimator, run_eval
 
 from perch_warp import bop
+from perch_warp.demo import demo_scene
 from perch_warp.score_map import ScoreMap
 from perch_warp.table import decompose_on_table
 
@@ -66,3 +67,12 @@ def test_from_run_on_a_folder_that_is_not_a_run(tmp_path, capsys):
     tool = load_tool("score_study")
     assert tool.main(["from-run", str(tmp_path), "--out", str(tmp_path / "pool.json")]) == 1
     assert "eval_config.json: not found" in capsys.readouterr().err
+
+
+def test_rescore_engines_use_the_alpha_asked_for(random_weights):
+    """`rescore --alpha A`: both the grid's engine and the refining one (which drops the grid's shift)
+    reduce with the top-A fraction, so a study of A compares what a search at A would score."""
+    study = load_tool("score_study")
+    grid, fine = study._engines(demo_scene(seed=1).mesh, random_weights, "centred", 0.35)
+    assert grid.config.alpha == fine.config.alpha == 0.35
+    assert grid.terms.shift == 1 and fine.terms.shift == 0

@@ -5,6 +5,7 @@ then re-score them under every candidate score (issue 17's development protocol)
         [--coarse-xy 0.03] [--coarse-yaw 15] [--pool 100] [--image-scale 0.5] [--clip 1.0]
     python tools/score_study.py from-run RUN --out POOL.json [--pool 100]
     python tools/score_study.py rescore POOL.npz --score thesis --score surround=fill,shrink=16 ...
+        [--alpha 0.5]
         [--out STUDY.json]
     python tools/score_study.py summary STUDY.json [--base SCORE]
 
@@ -225,7 +226,7 @@ def rescore(args: argparse.Namespace) -> None:
                 meshes[tg.obj_id] = load_mesh(sel.model_paths[tg.obj_id])
                 points[tg.obj_id] = pose_error.subsample_points(np.asarray(meshes[tg.obj_id].vertices_m))
             if tg.obj_id not in engines:
-                engines[tg.obj_id] = _engines(meshes[tg.obj_id], weights, spec)
+                engines[tg.obj_id] = _engines(meshes[tg.obj_id], weights, spec, args.alpha)
             out.append(_rescore_target(*engines[tg.obj_id], im, tg, row, tables, points[tg.obj_id], args))
         results[spec] = out
         _print_score_line(spec, out, t0)
@@ -235,10 +236,11 @@ def rescore(args: argparse.Namespace) -> None:
         args.out.write_text(json.dumps({"pool": str(args.pool), "results": results, "summary": report}, indent=1))
 
 
-def _engines(mesh, weights, spec: str) -> tuple[Engine, Engine]:
-    """(grid engine, refining engine) of a score: the same, except that the refinement below the grid
-    scores without the grid's shift tolerance (perch_warp.score_terms `shift`), as a search does."""
-    cfg = EngineConfig(search="pruned", refine=False, score=spec)
+def _engines(mesh, weights, spec: str, alpha: float) -> tuple[Engine, Engine]:
+    """(grid engine, refining engine) of a score at top-alpha fraction `alpha`: the same, except that the
+    refinement below the grid scores without the grid's shift tolerance (perch_warp.score_terms `shift`),
+    as a search does."""
+    cfg = EngineConfig(search="pruned", refine=False, score=spec, alpha=alpha)
     grid = Engine(mesh, weights, "cpu", cfg)
     if grid.terms.shift == 0:
         return grid, grid
@@ -394,6 +396,7 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("pool", type=Path)
     r.add_argument("--score", action="append", required=True, help="a score name or terms; repeat")
     r.add_argument("--limit", type=int)
+    r.add_argument("--alpha", type=float, default=0.5, help="top-alpha fraction of every score (default 0.5)")
     r.add_argument("--peaks", type=int, default=3, help="distinct far pool peaks refined like the truth (default 3)")
     r.add_argument("--verbose", action="store_true", help="a line per target")
     r.add_argument("--out", type=Path)
