@@ -68,9 +68,10 @@ class EngineConfig:
     conv: str = "auto"
     # What a candidate's score is made of (perch_warp.score_terms): a name ("thesis": the thesis's
     # formula; "grid-tolerant": the same with a grid stage that tolerates a one-cell misalignment;
-    # "centred": grid-tolerant with the centred cosine blended in, chosen on the development set,
-    # docs/accuracy.md) or terms over the thesis's, e.g. "shift=1,shrink=16".
-    score: str = "centred"
+    # "centred": grid-tolerant with the centred cosine blended in; "centred-4starts": centred with the
+    # rarity from the best of four k-means starts, chosen on the development set, docs/accuracy.md) or
+    # terms over the thesis's, e.g. "shift=1,shrink=16".
+    score: str = "centred-4starts"
 
     def __post_init__(self) -> None:
         parse_score(self.score)  # fails early, with the terms it knows

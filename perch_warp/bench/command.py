@@ -239,9 +239,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     m.add_argument("--image-scale", type=float, default=1.0, help="search on the photo resized by this factor")
     m.add_argument(
         "--score",
-        default="centred",
+        default="centred-4starts",
         metavar="NAME|TERMS",
-        help="the score, as the CLI's --score (default: centred)",
+        help="the score, as the CLI's --score (default: centred-4starts)",
     )
     m.add_argument("--cpu-threads", type=int, default=None, help="CPU device: batches at once (default: one per core)")
     m.add_argument(
