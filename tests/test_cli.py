@@ -35,7 +35,8 @@ def _args(d, *extra, image=None, camera=None, mesh=None):
 def _search_around(sc, yaw_step="30"):
     gx, gy, _ = sc.truth_xy_yaw
     x, y = round(gx, 2) + 0.01, round(gy, 2) - 0.01
-    return ["--x-range", f"{x - 0.03}", f"{x + 0.03}", "--y-range", f"{y - 0.03}", f"{y + 0.03}", "--yaw-step", yaw_step]
+    xs, ys = ["--x-range", f"{x - 0.03}", f"{x + 0.03}"], ["--y-range", f"{y - 0.03}", f"{y + 0.03}"]
+    return [*xs, *ys, "--yaw-step", yaw_step]
 
 
 def test_estimate_writes_json_and_overlay(scene_dir, caffe_weights, tmp_path, capsys):
