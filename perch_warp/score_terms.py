@@ -226,8 +226,8 @@ SCORES: dict[str, ScoreTerms] = {
     # the silhouette, not only its colours; chosen on the development set at stop 40: docs/accuracy.md).
     "centred": ScoreTerms(shift=1, centre=0.5),
     # centred, the photo's rarity taken from the best of four k-means starts (lowest inertia) rather
-    # than one, so an unlucky start cannot merge the target's colour into the table's cluster (chosen on
-    # the development set at stop 45, adopted at stop 46: docs/accuracy.md).
+    # than one, so the weights depend less on one start's luck (chosen on the development set at stop
+    # 45, adopted at stop 46: docs/accuracy.md).
     "centred-4starts": ScoreTerms(shift=1, centre=0.5, inits=4),
 }
 
