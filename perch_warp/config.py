@@ -9,7 +9,7 @@ from .errors import PerchError
 from .peaks import peak_pool
 from .render import RENDERERS
 from .score import CONVS
-from .score_terms import parse_score
+from .score_terms import DEFAULT_SCORE, parse_score
 
 SEARCHES = ("auto", "exhaustive", "pruned", "coarse-to-fine")
 
@@ -71,7 +71,7 @@ class EngineConfig:
     # "centred": grid-tolerant with the centred cosine blended in; "centred-4starts": centred with the
     # rarity from the best of four k-means starts, chosen on the development set, docs/accuracy.md) or
     # terms over the thesis's, e.g. "shift=1,shrink=16".
-    score: str = "centred-4starts"
+    score: str = DEFAULT_SCORE
 
     def __post_init__(self) -> None:
         parse_score(self.score)  # fails early, with the terms it knows

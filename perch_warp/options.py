@@ -12,6 +12,7 @@ import numpy as np
 from .errors import PerchError
 from .joint import DEFAULT_PEAKS
 from .report import log
+from .score_terms import DEFAULT_SCORE
 from .search_space import SearchSpace
 
 # Host bytes a search keeps per candidate of its grid, counted from the arrays of engine.py (not
@@ -40,14 +41,14 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
     g.add_argument("--relu", action="store_true", help="apply AlexNet's ReLU after conv1 (default: raw conv1)")
     g.add_argument(
         "--score",
-        default="centred-4starts",
+        default=DEFAULT_SCORE,
         metavar="NAME|TERMS",
         help="what a candidate's score is made of: centred-4starts (= shift=1,centre=0.5,inits=4: centred, "
         "the photo's rarity from the best of four k-means starts), centred (= shift=1,centre=0.5: the pattern "
         "inside the silhouette counts beside its colours, and the grid stage tolerates a one-cell "
         "misalignment), grid-tolerant (= shift=1, the thesis's formula with that grid stage), thesis (the "
         "thesis's formula exactly), or terms over the thesis's such as surround=fill,background=0.5,shrink=16 "
-        "(perch_warp/score_terms.py; default: centred-4starts)",
+        f"(perch_warp/score_terms.py; default: {DEFAULT_SCORE})",
     )
     _add_search_method_arguments(g)
     _add_compute_arguments(g)

@@ -231,6 +231,9 @@ SCORES: dict[str, ScoreTerms] = {
     "centred-4starts": ScoreTerms(shift=1, centre=0.5, inits=4),
 }
 
+# The frozen score (docs/accuracy.md): the default of the CLI, EngineConfig and bench alike.
+DEFAULT_SCORE = "centred-4starts"
+
 
 def parse_score(spec: str) -> tuple[str, ScoreTerms]:
     """A score by name (SCORES) or as terms `key=value,...` over the thesis's (e.g.

@@ -5,7 +5,7 @@ import pytest
 
 from perch_warp.errors import PerchError
 from perch_warp.rarity import rarity_from_labels
-from perch_warp.score_terms import SCORES, ScoreTerms, background_offset, parse_score
+from perch_warp.score_terms import DEFAULT_SCORE, SCORES, ScoreTerms, background_offset, parse_score
 
 
 def test_names_and_terms_parse():
@@ -15,7 +15,7 @@ def test_names_and_terms_parse():
     assert name == "surround=fill,background=0.5,shrink=16.0"
     assert parse_score("shrink=0")[0] == "thesis"  # the thesis's terms, however written
     assert parse_score("shift=1,shrink=8") == ("shrink=8.0,shift=1", ScoreTerms(shrink=8.0, shift=1))
-    assert set(SCORES) >= {"thesis", "grid-tolerant"}
+    assert set(SCORES) >= {"thesis", "grid-tolerant", DEFAULT_SCORE}
     assert parse_score("grid-tolerant") == ("grid-tolerant", ScoreTerms(shift=1))
     assert parse_score("centred") == ("centred", ScoreTerms(shift=1, centre=0.5))
     assert parse_score("centred-4starts") == ("centred-4starts", ScoreTerms(shift=1, centre=0.5, inits=4))

@@ -16,6 +16,7 @@ import warp as wp
 from ..errors import PerchError
 from ..pose_error import add_s
 from ..result import SearchInfo
+from ..score_terms import DEFAULT_SCORE
 from .environment import command_line, device_name, device_peak_mib, git_commit, git_dirty, host_peak_mib
 from .raycast import AGREEMENT_MIN, time_raycast
 from .workload import Workload, add_frame_arguments, default_dataset, load_workload, search_camera
@@ -239,9 +240,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> None:
     m.add_argument("--image-scale", type=float, default=1.0, help="search on the photo resized by this factor")
     m.add_argument(
         "--score",
-        default="centred-4starts",
+        default=DEFAULT_SCORE,
         metavar="NAME|TERMS",
-        help="the score, as the CLI's --score (default: centred-4starts)",
+        help=f"the score, as the CLI's --score (default: {DEFAULT_SCORE})",
     )
     m.add_argument("--cpu-threads", type=int, default=None, help="CPU device: batches at once (default: one per core)")
     m.add_argument(
