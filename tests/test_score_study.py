@@ -76,3 +76,31 @@ def test_rescore_engines_use_the_alpha_asked_for(random_weights):
     grid, fine = study._engines(demo_scene(seed=1).mesh, random_weights, "centred", 0.35)
     assert grid.config.alpha == fine.config.alpha == 0.35
     assert grid.terms.shift == 1 and fine.terms.shift == 0
+
+
+def _pool_file(path, dataset, rows, score):
+    meta = {"dataset": dataset, "models": None, "weights": "caffe", "score": score, "targets": rows}
+    path.write_text(json.dumps(meta))
+    return path
+
+
+def test_merge_interleaves_pools_by_rank_drops_repeats_and_keeps_shared_targets(tmp_path):
+    row = {"key": [1, 1, 0], "obj_id": 3, "rgb": "x.png", "gt": [0, 0, 0]}
+    a = [{**row, "pool": [[1, 0, 0], [2, 0, 0], [3, 0, 0]]}, {**row, "key": [1, 2, 0], "pool": [[9, 0, 0]]}]
+    b = [{**row, "pool": [[5, 0, 0], [1, 0, 0], [6, 0, 0], [7, 0, 0]]}]
+    tool = load_tool("score_study")
+    pa, pb = _pool_file(tmp_path / "a.json", "DS", a, "thesis"), _pool_file(tmp_path / "b.json", "DS", b, "centred")
+    assert tool.main(["merge", str(pa), str(pb), "--out", str(tmp_path / "m.json")]) == 0
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert [r["key"] for r in m["targets"]] == [[1, 1, 0]]  # only the target both pools hold
+    # rank 1 of each, rank 2 of each ([1, 0, 0] again: dropped), rank 3 of each, rank 4 of b
+    assert m["targets"][0]["pool"] == [[1, 0, 0], [5, 0, 0], [2, 0, 0], [3, 0, 0], [6, 0, 0], [7, 0, 0]]
+    assert m["score"] == ["thesis", "centred"] and m["targets"][0]["gt"] == [0, 0, 0]
+
+
+def test_merge_refuses_pools_of_different_datasets(tmp_path, capsys):
+    tool = load_tool("score_study")
+    pa = _pool_file(tmp_path / "a.json", "DS1", [], "thesis")
+    pb = _pool_file(tmp_path / "b.json", "DS2", [], "thesis")
+    assert tool.main(["merge", str(pa), str(pb), "--out", str(tmp_path / "m.json")]) == 1
+    assert "different datasets" in capsys.readouterr().err and not (tmp_path / "m.json").exists()

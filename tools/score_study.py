@@ -2,16 +2,19 @@
 then re-score them under every candidate score (issue 17's development protocol).
 
     python tools/score_study.py collect --dataset DEV --out POOL.npz [--scenes ..] [--max-images N]
-        [--coarse-xy 0.03] [--coarse-yaw 15] [--pool 100] [--image-scale 0.5] [--clip 1.0]
+        [--coarse-xy 0.03] [--coarse-yaw 15] [--pool 100] [--image-scale 0.5] [--clip 1.0] [--score thesis]
     python tools/score_study.py from-run RUN --out POOL.json [--pool 100]
+    python tools/score_study.py merge POOL_A.json POOL_B.json ... --out POOL.json
     python tools/score_study.py rescore POOL.npz --score thesis --score surround=fill,shrink=16 ...
         [--alpha 0.5]
         [--out STUDY.json]
     python tools/score_study.py summary STUDY.json [--base SCORE]
 
 `collect` runs, per target (thesis protocol: height, roll and pitch from the ground truth), the
-exact (pruned) search of the default region on a coarse grid under the thesis's score and keeps
-its best `--pool` poses (the competitors), plus the ground truth's (x, y, yaw) on the table.
+exact (pruned) search of the default region on a coarse grid under a score (`--score`, the thesis's
+by default) and keeps its best `--pool` poses (the competitors), plus the ground truth's (x, y, yaw)
+on the table. `merge` joins pools collected under several scores (interleaved by rank), so that a
+variant is judged against the places it likes itself as well as those the baseline likes.
 `from-run` takes the pool from a finished `perch_warp eval` run instead: each target's best
 `--pool` cells of the grid its search scored (the heat map's `seen`: the best scored yaw per x, y),
 so the competitors are those the run's own score and search found, at the run's resolution (the
@@ -59,7 +62,7 @@ def collect(args: argparse.Namespace) -> None:
     weights = load_feature_weights(args.weights)
     tables = bop.TableCache("auto")
     engines: dict[int, Engine] = {}
-    cfg = EngineConfig(search="pruned", refine=False, top_k=args.pool, score="thesis", image_scale=args.image_scale)
+    cfg = EngineConfig(search="pruned", refine=False, top_k=args.pool, score=args.score, image_scale=args.image_scale)
     rows = []
     if args.out.is_file():  # resume: keep the targets already collected
         rows = json.loads(args.out.read_text())["targets"]
@@ -88,7 +91,7 @@ def collect(args: argparse.Namespace) -> None:
                     "rgb": str(im.rgb),
                     "gt": [gx, gy, gyaw],
                     "pool": pool.tolist(),
-                    "thesis_scores": [c.score for c in res.top_k],
+                    "pool_scores": [c.score for c in res.top_k],
                 }
             )
             print(
@@ -155,6 +158,7 @@ def _save(path: Path, args: argparse.Namespace, rows: list[dict]) -> None:
         "coarse_yaw": args.coarse_yaw,
         "clip": args.clip,
         "image_scale": args.image_scale,
+        "score": args.score,
         "targets": rows,
     }
     tmp = path.with_suffix(".tmp")
@@ -188,6 +192,36 @@ def _on_grid(poses: np.ndarray) -> np.ndarray:
     """Which poses lie on the default grid (multiples of 1 cm and 5 deg)."""
     q = poses / np.array([GRID_XY_M, GRID_XY_M, GRID_YAW_RAD])
     return np.all(np.abs(q - np.round(q)) < 1e-6, axis=1)
+
+
+def merge(args: argparse.Namespace) -> None:
+    """One pool from several (each `collect`ed under its own score) over the targets they share: each
+    target's poses interleaved by rank (the first's best, the second's best, then the second best of
+    each ...), repeats dropped, so every score's best places are among the first and `rescore`
+    refines each score's peaks like the truth."""
+    metas = [json.loads(Path(p).read_text()) for p in args.pools]
+    if len({m["dataset"] for m in metas}) != 1:
+        raise PerchError("merge: the pools come from different datasets: " + ", ".join(str(p) for p in args.pools))
+    by_key = [{tuple(r["key"]): r for r in m["targets"]} for m in metas]
+    keys = [k for k in by_key[0] if all(k in b for b in by_key[1:])]
+    rows = []
+    for key in keys:
+        pools = [np.asarray(b[key]["pool"], dtype=np.float64).reshape(-1, 3) for b in by_key]
+        seen: set[tuple] = set()
+        merged = []
+        for i in range(max(len(q) for q in pools)):
+            for q in pools:
+                if i < len(q) and tuple(np.round(q[i], 6)) not in seen:
+                    seen.add(tuple(np.round(q[i], 6)))
+                    merged.append(q[i].tolist())
+        rows.append({**{k: v for k, v in by_key[0][key].items() if k not in ("pool", "pool_scores")}, "pool": merged})
+    meta = {**{k: v for k, v in metas[0].items() if k != "targets"}, "merged": [str(p) for p in args.pools]}
+    meta["score"] = [m.get("score", "thesis") for m in metas]
+    meta["targets"] = rows
+    tmp = args.out.with_suffix(".tmp")
+    tmp.write_text(json.dumps(meta))
+    tmp.replace(args.out)
+    print(f"{len(rows)} targets' pools merged from {len(metas)} -> {args.out}", file=sys.stderr)
 
 
 def far_peaks(pool: np.ndarray, gt, n: int, apart_m: float = 0.03, away_m: float = 0.02) -> np.ndarray:
@@ -375,7 +409,7 @@ def show(args: argparse.Namespace) -> None:
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="tools/score_study.py", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="cmd", required=True)
-    c = sub.add_parser("collect", help="each target's competing poses under the thesis's score")
+    c = sub.add_parser("collect", help="each target's competing poses under a score (the thesis's by default)")
     c.add_argument("--dataset", required=True)
     c.add_argument("--models", default=None)
     c.add_argument("--out", type=Path, required=True)
@@ -387,6 +421,7 @@ def main(argv: list[str] | None = None) -> int:
     c.add_argument("--coarse-yaw", type=float, default=15.0, help="grid step, degrees (default 15)")
     c.add_argument("--clip", type=float, default=1.0, help="default region's square, metres (default 1)")
     c.add_argument("--pool", type=int, default=100, help="best poses kept per target (default 100)")
+    c.add_argument("--score", default="thesis", help="the score whose best poses are kept (default thesis)")
     c.add_argument("--image-scale", type=float, default=0.5, help="photo scale of the collecting search (default 0.5)")
     f = sub.add_parser("from-run", help="each target's competing poses from a finished eval run's heat maps")
     f.add_argument("run", type=Path, help="the eval's output folder (targets.jsonl, heatmaps/)")
@@ -400,12 +435,15 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--peaks", type=int, default=3, help="distinct far pool peaks refined like the truth (default 3)")
     r.add_argument("--verbose", action="store_true", help="a line per target")
     r.add_argument("--out", type=Path)
+    m = sub.add_parser("merge", help="one pool from several collected under different scores")
+    m.add_argument("pools", type=Path, nargs="+")
+    m.add_argument("--out", type=Path, required=True)
     sh = sub.add_parser("summary", help="a study's summary again (rescore --out's file)")
     sh.add_argument("study", type=Path)
     sh.add_argument("--base", help="the score the others are paired against (default: the first)")
     args = p.parse_args(argv)
     try:
-        {"collect": collect, "from-run": from_run, "rescore": rescore, "summary": show}[args.cmd](args)
+        {"collect": collect, "from-run": from_run, "merge": merge, "rescore": rescore, "summary": show}[args.cmd](args)
     except PerchError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1
