@@ -87,6 +87,11 @@ class Engine:
                 f"score {self.config.score!r} blends raw and rectified conv1 (rectified="
                 f"{self.terms.rectified}), which needs raw conv1: drop --relu"
             )
+        if self.terms.cluster == "direction" and self.config.relu:
+            raise PerchError(
+                f"score {self.config.score!r} clusters the direction of conv1's response without its bias "
+                "(cluster=direction), which needs raw conv1: drop --relu"
+            )
         # Uploaded once, shared by both renderers; the score's texture term says how they read the texture.
         self.device_mesh = DeviceMesh(mesh, self.device, self.terms.texture)
         self._renderers: dict[str, Renderer] = {}

@@ -15,6 +15,16 @@ def rarity_from_labels(labels: np.ndarray, n_clusters: int, mode: str = "max") -
     return (1.0 - counts[labels] / norm).astype(np.float32)
 
 
+def unit_responses(features: np.ndarray, bias: np.ndarray) -> np.ndarray:
+    """(N, C) float32: each raw conv1 feature (N, C) without conv1's folded bias (C,), scaled to unit
+    length (0 where it vanishes). conv1 is W x + b on the window x (RGB in [0, 1], the preprocessing
+    folded into W and b), so W x scales with the window's brightness and its direction does not:
+    clustered, a shadowed face joins its lit twin rather than the shadows (score term ``cluster``)."""
+    g = np.asarray(features, np.float64) - np.asarray(bias, np.float64)[None, :]
+    n = np.linalg.norm(g, axis=1, keepdims=True)
+    return np.divide(g, n, out=np.zeros_like(g), where=n > 1e-9).astype(np.float32)
+
+
 def kmeans_labels(features: np.ndarray, n_clusters: int = 20, seed: int = 0, inits: int = 1) -> np.ndarray:
     """k-means cluster of each feature vector (N, C), the best of `inits` initialisations;
     deterministic for a seed."""

@@ -105,6 +105,7 @@ class FeatureScorer:
         kernels = feature_kernels(weights.channels)
         self.vecC, self.k_observed, self.k_score, self.k_score_features, self.k_sums = kernels
         Wt, b = weights.folded()
+        self.folded_bias = b  # conv1's bias on RGB in [0, 1] (the score term cluster=direction removes it)
         with wp.ScopedDevice(device):
             self.Wt = wp.array(Wt, dtype=self.vecC)
             self.bias = self.vecC(*b.tolist())

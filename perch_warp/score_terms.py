@@ -24,6 +24,14 @@ Terms (each off in `thesis`):
   towards 0 (a size-aware statistic).
 - ``rarity``: ``max`` (thesis: 1 - count / max count; the commonest cluster weighs 0)
   or ``total`` (1 - count / all points); ``inits``: k-means initialisations (best of).
+- ``cluster``: what k-means clusters for the rarity. ``features`` (thesis): conv1's features as they
+  are. Under a hard light the commonest cluster is "dark" (cast shadows, a dim wall) and takes in
+  the face of an object turned from the light, which then weighs 0 however distinctive its print.
+  ``direction``: the direction of conv1's response without its bias, (F - b) / |F - b| with
+  F - b = W x linear in the window x, so a window and the same window darker or brighter by a
+  factor fall in one cluster: the rarity says how common an appearance is, not how lit
+  (perch_warp.rarity.unit_responses). Only the weights change, each still in [0, 1), so the bound
+  holds as it is. Raw conv1 only (not `--relu`).
 - ``outline`` w: the outline term (issue 17 (d), perch_warp.outline): a point on the
   candidate's outline also earns w * |e . n|, the photo's normalised intensity gradient across
   the rendered outline's normal, so a silhouette that follows the photo's edges gains over a
@@ -130,6 +138,9 @@ SURROUNDS = ("photo", "fill", "weighted")
 # How kernel #1 reads a texture: one bilinear lookup per pixel ray (the thesis's), or mip-mapped.
 TEXTURES = ("bilinear", "mip")
 RARITY_MODES = ("max", "total")
+# What k-means clusters for the rarity: conv1's features as they are (the thesis's), or the direction of
+# conv1's response without its bias (perch_warp.rarity.unit_responses), the same for a window darker or brighter.
+CLUSTER_SPACES = ("features", "direction")
 MAX_SHIFT = 3  # (2 r + 1)^2 = 49 comparisons per point at most
 MAX_EXPOSURE = 2.0  # stops: 9 gains, 1/4 to 4
 MAX_TONE = 3  # whole stops brighter: 4 exposures, 1 to 8
@@ -156,8 +167,11 @@ class ScoreTerms:
     smooth: float = 0.0
     shade: float = 0.0
     centre: float = 0.0
+    cluster: str = "features"
 
     def __post_init__(self) -> None:
+        if self.cluster not in CLUSTER_SPACES:
+            raise PerchError(f"score term cluster must be one of {', '.join(CLUSTER_SPACES)}, got {self.cluster!r}")
         if not (np.isfinite(self.centre) and 0.0 <= self.centre <= 1.0):
             raise PerchError(f"score term centre must be in [0, 1], got {self.centre}")
         if self.centre > 0.0 and (self.exposure > 0.0 or self.tone > 0 or self.light > 0.0 or self.rectified > 0.0):

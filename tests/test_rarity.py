@@ -1,6 +1,6 @@
 import numpy as np
 
-from perch_warp.rarity import kmeans_labels, rarity, rarity_from_labels
+from perch_warp.rarity import kmeans_labels, rarity, rarity_from_labels, unit_responses
 
 
 def test_rarity_follows_its_definition():
@@ -41,3 +41,36 @@ def test_several_kmeans_starts_keep_the_best_clustering():
     assert sum(b < a * (1 - 1e-3) for a, b in zip(one, four, strict=True)) >= 2
     again = kmeans_labels(feats, 8, 3, 4)
     assert np.array_equal(again, kmeans_labels(feats, 8, 3, 4))
+
+
+def test_unit_responses_drop_the_bias_and_ignore_brightness():
+    """unit_responses: (F - b) / |F - b|, so conv1 features of a window and of the same window at 30 %
+    of its brightness (F = b + W x and b + 0.3 W x, conv1 being linear) have one direction."""
+    rng = np.random.default_rng(2)
+    W, b = rng.normal(0, 1, (5, 16)), rng.normal(0, 2, 16)
+    x = rng.uniform(0, 1, (40, 5))
+    lit, dark = x @ W + b, 0.3 * x @ W + b
+    u = unit_responses(lit, b)
+    ref = (lit - b) / np.linalg.norm(lit - b, axis=1, keepdims=True)
+    assert u.dtype == np.float32 and np.allclose(u, ref, atol=1e-6)
+    assert np.allclose(unit_responses(dark, b), u, atol=1e-6)
+    assert not np.allclose(dark / np.linalg.norm(dark, axis=1, keepdims=True), ref, atol=1e-2)  # raw: not so
+    assert np.array_equal(unit_responses(np.tile(b, (3, 1)), b), np.zeros((3, 16), np.float32))  # no response
+
+
+def test_direction_clusters_put_a_shadowed_face_with_its_lit_twin():
+    """The harsh-light failure the term is for: the commonest raw cluster is the shadows, and it takes in
+    the face turned from the light (rarity 0); clustered on directions, the face joins its lit twin and
+    the shadows' own cluster keeps the weight 0."""
+    rng = np.random.default_rng(4)
+    W, b = rng.normal(0, 1, (6, 12)), rng.normal(0, 1, 12)
+    shade = 0.05 * rng.uniform(0.9, 1.1, (700, 6))  # cast shadows: dark, the most common appearance
+    table = rng.uniform(0, 1, 6) * rng.uniform(0.95, 1.05, (500, 6))  # the lit table
+    face = rng.uniform(0, 1, 6)  # a printed face, lit and in shadow
+    lit = face * rng.uniform(0.95, 1.05, (60, 6))
+    dim = 0.08 * face * rng.uniform(0.95, 1.05, (60, 6))
+    F = np.concatenate([shade, table, lit, dim]) @ W + b
+    raw = rarity(F.astype(np.float32), n_clusters=3, seed=0)
+    unit = rarity(unit_responses(F, b), n_clusters=3, seed=0)
+    assert raw[1260:].max() == 0.0 and raw[:700].max() == 0.0  # the dim face weighs 0 with the shadows
+    assert unit[1200:].min() > 0.8 and unit[:700].max() == 0.0

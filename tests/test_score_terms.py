@@ -33,6 +33,7 @@ def test_names_and_terms_parse():
         ("background=2", "background"),
         ("rarity=median", "rarity"),
         ("inits=0", "inits"),
+        ("cluster=colour", "cluster"),
         ("shift=4", "shift"),
         ("shift=-1", "shift"),
         ("shift=0.5", "shift"),
@@ -91,3 +92,45 @@ def test_background_offset_is_weighted_cosine_to_the_commonest_centroid():
         assert got[i] == pytest.approx(0.7 * gain[i] * max(cos, 0.0), abs=1e-6)
     assert np.all(background_offset(feats, labels, gain, 0.0) == 0)
     assert np.all(gain - got >= 0)  # the ceiling gain - offset stays >= 0 for weights <= 1
+
+
+def test_cluster_direction_rarity_is_kmeans_on_conv1s_unbiased_unit_response(random_weights):
+    """cluster=direction: the photo's gain is the thesis's rarity of the unit vectors of conv1's response
+    without its bias, here from torch's conv on x / std with no bias (conv1 on (x - mean) / std plus the
+    bias, less the folded bias, is that); the thesis's clustering of the same photo weighs otherwise."""
+    import torch
+    from _device import DEVICE
+
+    from perch_warp.demo import demo_scene
+    from perch_warp.engine import Engine, EngineConfig
+    from perch_warp.rarity import rarity, unit_responses
+
+    scene = demo_scene(seed=1)
+    gains = {}
+    for cluster in ("features", "direction"):
+        config = EngineConfig(score=f"shift=1,inits=2,cluster={cluster}")
+        service = Engine(scene.mesh, random_weights, DEVICE, config).scoring(
+            scene.image, scene.camera, scene.table, scene.resting
+        )
+        photo = service.photo
+        gains[cluster] = photo.weights.gain.numpy().ravel()
+    obs = photo.obs.numpy().reshape(photo.rows * photo.cols, -1)
+    x = torch.from_numpy(scene.image.astype(np.float64) / 255.0).permute(2, 0, 1)[None]
+    std = torch.tensor(random_weights.std, dtype=torch.float64)[None, :, None, None]
+    g = torch.nn.functional.conv2d(x / std, torch.from_numpy(random_weights.weight).double(), stride=4)
+    g = g[0].permute(1, 2, 0).reshape(photo.rows * photo.cols, -1).numpy()
+    u = unit_responses(obs, service.backends.scorer.folded_bias)
+    assert np.abs(u - g / np.linalg.norm(g, axis=1, keepdims=True)).max() < 1e-3
+    config = service.config
+    assert np.array_equal(gains["direction"], rarity(u, config.clusters, config.seed, "max", 2))
+    assert not np.allclose(gains["direction"], gains["features"], atol=0.05)
+
+
+def test_cluster_direction_needs_raw_conv1(random_weights):
+    from _device import DEVICE
+
+    from perch_warp.demo import demo_scene
+    from perch_warp.engine import Engine, EngineConfig
+
+    with pytest.raises(PerchError, match="cluster=direction.*drop --relu"):
+        Engine(demo_scene(seed=1).mesh, random_weights, DEVICE, EngineConfig(score="cluster=direction", relu=True))

@@ -30,7 +30,7 @@ from ..image import check_rgb
 from ..kernels.features import PointWeights
 from ..kernels.render import Shading
 from ..outline import edge_ceiling, edge_map
-from ..rarity import rarity_and_labels
+from ..rarity import rarity_and_labels, unit_responses
 from ..render import MIN_DEPTH_M, BoxProjector, Renderer
 from ..score import (
     FeatureScorer,
@@ -177,7 +177,8 @@ def photo_on_device(backends: Backends, config, terms: ScoreTerms, image_rgb, ca
     obs = backends.scorer.observed_features(image)
     t = lap(backends.device, timings, "photo_features", t)
     feats = obs.numpy().reshape(rows * cols, -1)
-    rar, labels = rarity_and_labels(feats, config.clusters, config.seed, terms.rarity, terms.inits)
+    space = unit_responses(feats, backends.scorer.folded_bias) if terms.cluster == "direction" else feats
+    rar, labels = rarity_and_labels(space, config.clusters, config.seed, terms.rarity, terms.inits)
     offset = background_offset(feats, labels, rar, terms.background)
     ceiling = (rar - offset).reshape(rows, cols)
     edge = None
