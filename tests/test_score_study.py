@@ -104,3 +104,19 @@ def test_merge_refuses_pools_of_different_datasets(tmp_path, capsys):
     pb = _pool_file(tmp_path / "b.json", "DS2", [], "thesis")
     assert tool.main(["merge", str(pa), str(pb), "--out", str(tmp_path / "m.json")]) == 1
     assert "different datasets" in capsys.readouterr().err and not (tmp_path / "m.json").exists()
+
+
+def test_merge_names_a_from_run_pools_score_and_refuses_a_missing_pool(tmp_path, capsys):
+    row = {"key": [1, 1, 0], "obj_id": 3, "rgb": "x.png", "gt": [0, 0, 0], "pool": [[1, 0, 0]], "pool_scores": [0.5]}
+    pa = _pool_file(tmp_path / "a.json", "DS", [row], "thesis")
+    run = {"dataset": "DS", "models": None, "weights": "caffe", "run_options": {"score": "centred"}, "targets": [row]}
+    (tmp_path / "b.json").write_text(json.dumps(run))
+    tool = load_tool("score_study")
+    assert tool.main(["merge", str(pa), str(tmp_path / "b.json"), "--out", str(tmp_path / "m.json")]) == 0
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert m["score"] == ["thesis", "centred"] and "pool_scores" not in m["targets"][0]
+    capsys.readouterr()
+    missing = tmp_path / "nope.json"
+    assert tool.main(["merge", str(pa), str(missing), "--out", str(tmp_path / "m2.json")]) == 1
+    err = capsys.readouterr().err.strip()
+    assert f"{missing}: not found" in err and "\n" not in err and not (tmp_path / "m2.json").exists()

@@ -51,6 +51,7 @@ from perch_warp.eval.plots import heatmap_path
 from perch_warp.features import load_feature_weights
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
+from perch_warp.outputs import atomic_write_text
 from perch_warp.score_map import ScoreMap
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import decompose_on_table, model_to_camera
@@ -143,9 +144,7 @@ def from_run(args: argparse.Namespace) -> None:
     options = cfg.get("options") or {}
     meta = {"dataset": str(Path(cfg["dataset"]).resolve()), "models": None, "weights": options.get("weights", "auto"),
             "run": str(run.resolve()), "run_options": options, "targets": rows}  # fmt: skip
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(meta))
-    tmp.replace(args.out)
+    atomic_write_text(args.out, json.dumps(meta))
     print(f"{len(rows)} targets' pools from {run} -> {args.out}", file=sys.stderr)
 
 
@@ -161,9 +160,7 @@ def _save(path: Path, args: argparse.Namespace, rows: list[dict]) -> None:
         "score": args.score,
         "targets": rows,
     }
-    tmp = path.with_suffix(".tmp")
-    tmp.write_text(json.dumps(meta))
-    tmp.replace(path)
+    atomic_write_text(path, json.dumps(meta))
 
 
 def _cell(pose) -> np.ndarray:
@@ -199,11 +196,15 @@ def merge(args: argparse.Namespace) -> None:
     target's poses interleaved by rank (the first's best, the second's best, then the second best of
     each ...), repeats dropped, so every score's best places are among the first and `rescore`
     refines each score's peaks like the truth."""
+    for p in args.pools:
+        if not Path(p).is_file():
+            raise PerchError(f"{p}: not found (merge reads pools written by collect or from-run)")
     metas = [json.loads(Path(p).read_text()) for p in args.pools]
     if len({m["dataset"] for m in metas}) != 1:
         raise PerchError("merge: the pools come from different datasets: " + ", ".join(str(p) for p in args.pools))
     by_key = [{tuple(r["key"]): r for r in m["targets"]} for m in metas]
     keys = [k for k in by_key[0] if all(k in b for b in by_key[1:])]
+    per_pool = ("pool", "pool_scores", "thesis_scores")  # each source's own; thesis_scores: collect before stop 48
     rows = []
     for key in keys:
         pools = [np.asarray(b[key]["pool"], dtype=np.float64).reshape(-1, 3) for b in by_key]
@@ -211,16 +212,19 @@ def merge(args: argparse.Namespace) -> None:
         merged = []
         for i in range(max(len(q) for q in pools)):
             for q in pools:
-                if i < len(q) and tuple(np.round(q[i], 6)) not in seen:
-                    seen.add(tuple(np.round(q[i], 6)))
+                if i >= len(q):
+                    continue
+                pose = tuple(np.round(q[i], 6))
+                if pose not in seen:
+                    seen.add(pose)
                     merged.append(q[i].tolist())
-        rows.append({**{k: v for k, v in by_key[0][key].items() if k not in ("pool", "pool_scores")}, "pool": merged})
-    meta = {**{k: v for k, v in metas[0].items() if k != "targets"}, "merged": [str(p) for p in args.pools]}
-    meta["score"] = [m.get("score", "thesis") for m in metas]
+        rows.append({**{k: v for k, v in by_key[0][key].items() if k not in per_pool}, "pool": merged})
+    meta = {k: v for k, v in metas[0].items() if k != "targets"}
+    meta["merged"] = [str(p) for p in args.pools]
+    # collect's pools name their score, from-run's carry it in the run's options; older ones are the thesis's
+    meta["score"] = [m.get("score") or (m.get("run_options") or {}).get("score") or "thesis" for m in metas]
     meta["targets"] = rows
-    tmp = args.out.with_suffix(".tmp")
-    tmp.write_text(json.dumps(meta))
-    tmp.replace(args.out)
+    atomic_write_text(args.out, json.dumps(meta))
     print(f"{len(rows)} targets' pools merged from {len(metas)} -> {args.out}", file=sys.stderr)
 
 
