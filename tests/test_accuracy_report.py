@@ -41,7 +41,19 @@ def test_figures_and_paired_differences_by_hand(tool, tmp_path, capsys):
     assert p["figures"]["auc"]["diff"] == pytest.approx(((95 - 75) + 0) / 2)
     assert p["figures"]["adds_below_2cm_pct"]["diff"] == pytest.approx(50.0)
     assert p["now_below_2cm"] == [[1, 1, 0]] and p["no_longer_below_2cm"] == []
-    assert "ADD-S AUC" in capsys.readouterr().out
+    assert p["sign_test_p"] == pytest.approx(1.0)  # one discordant target: 2 * 1/2, capped at 1
+    text = capsys.readouterr().out
+    assert "ADD-S AUC" in text and "here only: 1 (1/1/0); there only: 0;" in text
+
+
+def test_sign_test_by_hand(tool):
+    # 6 gained, 3 lost of 9 discordant: 2 * (1 + 9 + 36 + 84) / 512 = 0.5078 (stop 43's figure);
+    # 4 and 2: 2 * (1 + 6 + 15) / 64 = 0.6875 (stop 47's); 5 and 0: 2 / 32.
+    assert tool.sign_test_p(6, 3) == pytest.approx(260 / 512)
+    assert tool.sign_test_p(3, 6) == pytest.approx(260 / 512)
+    assert tool.sign_test_p(4, 2) == pytest.approx(44 / 64)
+    assert tool.sign_test_p(5, 0) == pytest.approx(2 / 32)
+    assert tool.sign_test_p(0, 0) == 1.0
 
 
 def test_missing_folder_is_a_one_line_error(tool, tmp_path, capsys):

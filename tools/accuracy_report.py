@@ -7,7 +7,8 @@ prints, over its targets: the exact ADD-S AUC (the mean of max(0, 1 - e / 10 cm)
 exact ADD AUC and translation error < 1 cm, each with a 95 % percentile bootstrap interval (targets
 resampled, seed 0: `perch_warp.eval.metrics.mean_interval`). A failed target (no pose) counts as wrong.
 With --against, the two runs are paired on the targets both hold (scene, image, instance) and the
-differences OUT - BASE_OUT are given with paired intervals, with the targets that cross 2 cm either way.
+differences OUT - BASE_OUT are given with paired intervals, with the targets that cross 2 cm either way
+(scene/image/instance) and an exact two-sided sign test on them.
 Exit 1 on bad input.
 """
 
@@ -16,6 +17,7 @@ from __future__ import annotations
 import argparse
 import csv
 import json
+import math
 import sys
 from pathlib import Path
 
@@ -56,6 +58,21 @@ def shares(rows: list[dict]) -> dict[str, np.ndarray]:
     return target_shares([r["adds_m"] for r in rows], [r["add_m"] for r in rows], [r["te_m"] for r in rows])
 
 
+def sign_test_p(gained: int, lost: int) -> float:
+    """Exact two-sided sign test on the discordant targets (found by one run only): the chance, were
+    either run equally likely to find each of them, of a split at least this uneven."""
+    n = gained + lost
+    if n == 0:
+        return 1.0
+    tail = sum(math.comb(n, i) for i in range(min(gained, lost) + 1)) / 2**n
+    return min(1.0, 2.0 * tail)
+
+
+def _ids(keys: list) -> str:
+    """ " (1/6/2, 1/8/0)": scene/image/instance of each target, or "" for none."""
+    return " (" + ", ".join("/".join(map(str, k)) for k in keys) + ")" if keys else ""
+
+
 def report(run: dict, base: dict | None = None) -> dict:
     keys = sorted(run)
     own = shares([run[k] for k in keys])
@@ -73,6 +90,8 @@ def report(run: dict, base: dict | None = None) -> dict:
             "now_below_2cm": [list(k) for k, x, y in zip(common, ok_a, ok_b, strict=True) if x and not y],
             "no_longer_below_2cm": [list(k) for k, x, y in zip(common, ok_a, ok_b, strict=True) if y and not x],
         }
+        p = out["paired"]
+        p["sign_test_p"] = sign_test_p(len(p["now_below_2cm"]), len(p["no_longer_below_2cm"]))
     return out
 
 
@@ -102,7 +121,11 @@ def main(argv: list[str] | None = None) -> int:
         for k, name in FIGURES.items():
             f = p["figures"][k]
             print(f"  {name:<24}{f['diff']:+8.2f}   [{f['ci95'][0]:+.2f}, {f['ci95'][1]:+.2f}]")
-        print(f"  below 2 cm here only: {len(p['now_below_2cm'])}; there only: {len(p['no_longer_below_2cm'])}")
+        print(
+            f"  below 2 cm here only: {len(p['now_below_2cm'])}{_ids(p['now_below_2cm'])}; "
+            f"there only: {len(p['no_longer_below_2cm'])}{_ids(p['no_longer_below_2cm'])}; "
+            f"exact sign test p = {p['sign_test_p']:.2f}"
+        )
     if args.json:
         args.json.write_text(json.dumps(rep, indent=1) + "\n")
     return 0
