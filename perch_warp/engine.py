@@ -82,16 +82,10 @@ class Engine:
         self.weights = weights
         t0 = time.perf_counter()
         self.score_name, self.terms = parse_score(self.config.score)  # perch_warp.score_terms
-        if self.terms.rectified > 0.0 and self.config.relu:
-            raise PerchError(
-                f"score {self.config.score!r} blends raw and rectified conv1 (rectified="
-                f"{self.terms.rectified}), which needs raw conv1: drop --relu"
-            )
-        if self.terms.cluster == "direction" and self.config.relu:
-            raise PerchError(
-                f"score {self.config.score!r} clusters the direction of conv1's response without its bias "
-                "(cluster=direction), which needs raw conv1: drop --relu"
-            )
+        raw = self.terms.raw_conv1_terms()
+        if raw and self.config.relu:
+            uses = " and ".join(raw)
+            raise PerchError(f"score {self.config.score!r} uses {uses}, which needs raw conv1: drop --relu")
         # Uploaded once, shared by both renderers; the score's texture term says how they read the texture.
         self.device_mesh = DeviceMesh(mesh, self.device, self.terms.texture)
         self._renderers: dict[str, Renderer] = {}

@@ -213,6 +213,16 @@ class ScoreTerms:
         if not 0 <= self.shift <= MAX_SHIFT:
             raise PerchError(f"score term shift must be 0 to {MAX_SHIFT} feature-grid cells, got {self.shift}")
 
+    def raw_conv1_terms(self) -> list[str]:
+        """The terms set here that read conv1's raw response, which `--relu` discards (the engine refuses
+        them together): each as `key=value (why)`."""
+        terms = []
+        if self.rectified > 0.0:
+            terms.append(f"rectified={self.rectified} (raw and rectified conv1 blended)")
+        if self.cluster == "direction":
+            terms.append("cluster=direction (k-means on the direction of conv1's response without its bias)")
+        return terms
+
     def below_grid(self) -> ScoreTerms:
         """The terms the refinement below the grid scores with: the same without the grid's shift."""
         return dataclasses.replace(self, shift=0)
