@@ -113,3 +113,17 @@ def test_a_folder_without_eval_config_is_a_one_line_error(tool, tmp_path, capsys
     assert tool.main([str(tmp_path / "nothing"), "--out", str(tmp_path / "o")]) == 1
     err = capsys.readouterr().err.strip()
     assert "eval_config.json not found" in err and "\n" not in err
+
+
+def test_a_journal_without_the_refinement_record_is_a_one_line_error(tool, runs, tmp_path, capsys):
+    _, k1, _ = runs
+    run = tmp_path / "run"
+    shutil.copytree(k1, run)
+    lines = [json.loads(x) for x in (run / "targets.jsonl").open()]
+    for j in lines:
+        j["details"].pop("refine")
+    (run / "targets.jsonl").write_text("".join(json.dumps(j) + "\n" for j in lines))
+    (run / "results.csv").unlink()  # the journal is then the only record
+    assert tool.main([str(run), "--out", str(tmp_path / "o"), "--device", "cpu"]) == 1
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "has no refinement record in the run's journal" in err

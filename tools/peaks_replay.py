@@ -136,20 +136,21 @@ def replay_target(engine, image, job, smap, done, config) -> dict:
     order = top_location_candidates(flat, scores, len(space.axes()[2]), config.pool)
     top = [(float(x[n]), float(y[n]), float(yaw[n]), float(scores[n])) for n in order]
 
-    ref = done.details.get("refine") or {}
-    origin = ref.get("from") or {}
+    origin = (done.details.get("refine") or {}).get("from")
+    if not origin:
+        raise SystemExit(f"peaks_replay: target {job.target.key} has no refinement record in the run's journal")
     first, _ = refine(service, space, [top[0]], engine.search)
     check = {
         "grid": [top[0][0], top[0][1], math.degrees(top[0][2]), top[0][3]],
-        "run_grid": [origin.get("x_m"), origin.get("y_m"), origin.get("yaw_deg"), origin.get("score")],
+        "run_grid": [origin["x_m"], origin["y_m"], origin["yaw_deg"], origin["score"]],
         "refined_score": first[0][3],
         "run_score": done.score,
     }
     same_grid = (
-        origin.get("score") == top[0][3]
-        and abs(origin.get("x_m", np.nan) - top[0][0]) < 1e-9
-        and abs(origin.get("y_m", np.nan) - top[0][1]) < 1e-9
-        and abs(origin.get("yaw_deg", np.nan) - math.degrees(top[0][2])) < 1e-6
+        origin["score"] == top[0][3]
+        and abs(origin["x_m"] - top[0][0]) < 1e-9
+        and abs(origin["y_m"] - top[0][1]) < 1e-9
+        and abs(origin["yaw_deg"] - math.degrees(top[0][2])) < 1e-6
     )
     if not (same_grid and first[0][3] == done.score):
         raise SystemExit(f"peaks_replay: target {job.target.key}: refining the best location alone does not give "
