@@ -127,3 +127,29 @@ def test_a_journal_without_the_refinement_record_is_a_one_line_error(tool, runs,
     assert tool.main([str(run), "--out", str(tmp_path / "o"), "--device", "cpu"]) == 1
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "has no refinement record in the run's journal" in err
+
+
+def test_shards_side_by_side_give_the_whole_runs_rows(tool, runs, tmp_path):
+    _, k1, _ = runs
+    out = tmp_path / "sharded"
+    for i in range(2):  # one target: shard 0 takes it, shard 1 has none
+        assert (
+            tool.main([str(k1), "--out", str(out), "--refine-peaks", "1", "--device", "cpu", "--shard", f"{i}/2"]) == 0
+        )
+    assert tool.main([str(k1), "--out", str(out), "--limit", "0", "--device", "cpu"]) == 0
+    assert len([json.loads(x) for x in (out / "replay.jsonl").open()]) == len(_journal(k1))
+    with (out / "per_target.csv").open() as f, (k1 / "per_target.csv").open() as g:
+        assert [r["adds_mm"] for r in csv.DictReader(f)] == [r["adds_mm"] for r in csv.DictReader(g)]
+
+
+@pytest.mark.parametrize("spec", ["2/2", "1", "a/b", "0/0"])
+def test_a_bad_shard_is_a_one_line_error(tool, spec, tmp_path):
+    with pytest.raises(SystemExit, match="--shard"):
+        tool.shard_of(spec)
+
+
+def test_a_line_cut_short_is_skipped_and_said(tool, tmp_path, capsys):
+    path = tmp_path / "replay.jsonl"
+    path.write_text('{"key": [1, 1, 0]}\n{"key": [1, 1\n{"key": [1, 2, 0]}\n')
+    assert [r["key"] for r in tool.read_journal(path)] == [[1, 1, 0], [1, 2, 0]]
+    assert "line 2 is cut short" in capsys.readouterr().err

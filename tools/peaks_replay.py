@@ -35,6 +35,7 @@ import argparse
 import dataclasses
 import json
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -167,7 +168,37 @@ def replay_target(engine, image, job, smap, done, config) -> dict:
     }
 
 
-def replay(run: Path, out: Path, peaks: int, yaws: int, device: str | None, limit: int | None = None) -> list[dict]:
+def read_journal(path: Path) -> list[dict]:
+    """replay.jsonl's rows; a line cut short (a process killed while writing it) is skipped, said, and redone."""
+    rows = []
+    if not path.is_file():
+        return rows
+    for n, line in enumerate(path.read_text().splitlines(), 1):
+        if not line.strip():
+            continue
+        try:
+            rows.append(json.loads(line))
+        except json.JSONDecodeError:
+            print(f"peaks_replay: {path} line {n} is cut short; its target is replayed again", file=sys.stderr)
+    return rows
+
+
+def shard_of(spec: str | None) -> tuple[int, int]:
+    """--shard "I/N" as (I, N): this process takes the targets whose place in the run's order is I modulo N."""
+    if spec is None:
+        return 0, 1
+    try:
+        i, n = (int(v) for v in spec.split("/"))
+    except ValueError:
+        raise SystemExit(f"peaks_replay: --shard must be I/N, e.g. 0/2, got {spec!r}") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise SystemExit(f"peaks_replay: --shard I/N needs 0 <= I < N, got {spec!r}")
+    return i, n
+
+
+def replay(
+    run: Path, out: Path, peaks: int, yaws: int, device: str | None, limit: int | None = None, shard: str | None = None
+) -> list[dict]:
     from perch_warp import bop
     from perch_warp.bop.targets import TableCache, select_targets
     from perch_warp.eval.command import _ids
@@ -196,9 +227,11 @@ def replay(run: Path, out: Path, peaks: int, yaws: int, device: str | None, limi
 
     out.mkdir(parents=True, exist_ok=True)
     journal = out / REPLAY_FILE
-    rows = [json.loads(line) for line in journal.read_text().splitlines() if line.strip()] if journal.is_file() else []
+    rows = read_journal(journal)
     have = {tuple(r["key"]) for r in rows}
-    todo = [(im, t) for im in sel.images for t in im.targets if tuple(t.key) in done and tuple(t.key) not in have]
+    i_shard, n_shards = shard_of(shard)
+    finished = [(im, t) for im in sel.images for t in im.targets if tuple(t.key) in done]
+    todo = [p for n, p in enumerate(finished) if n % n_shards == i_shard and tuple(p[1].key) not in have]
     todo = todo[:limit] if limit is not None else todo
     for n, (im, t) in enumerate(todo, 1):
         t0 = time.perf_counter()
@@ -211,8 +244,12 @@ def replay(run: Path, out: Path, peaks: int, yaws: int, device: str | None, limi
         job = prepare_job(im, t, tables, space_fn)
         row = replay_target(estimator.engine(t.obj_id), load_rgb(im.rgb), job, smap, done[tuple(t.key)], config)
         row["seconds"] = time.perf_counter() - t0
-        with journal.open("a") as f:
-            f.write(json.dumps(row) + "\n")
+        # One write per line, appended: shards side by side on one journal never interleave within a line.
+        fd = os.open(journal, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
+        try:
+            os.write(fd, (json.dumps(row) + "\n").encode())
+        finally:
+            os.close(fd)
         rows.append(row)
         what = "same answer" if row["same_as_run"] else f"new answer, score {row['answer']['score']:.4f}"
         print(f"[{n}/{len(todo)}] {'/'.join(map(str, t.key))} obj {t.obj_id}: {what} ({row['seconds']:.0f} s)",
@@ -256,11 +293,17 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--refine-yaws", type=int, default=1, help="M, as eval's --refine-yaws (default 1)")
     ap.add_argument("--device", help="Warp device (default: the run's)")
     ap.add_argument("--limit", type=int, metavar="N", help="replay at most N more targets (a check on a few)")
+    ap.add_argument(
+        "--shard",
+        metavar="I/N",
+        help="take every N-th target from the I-th (processes side by side on one --out, each its own shard; "
+        "then one more call with --limit 0 writes per_target.csv over them all)",
+    )
     args = ap.parse_args(argv)
     from perch_warp.errors import PerchError
 
     try:
-        rows = replay(args.run, args.out, args.refine_peaks, args.refine_yaws, args.device, args.limit)
+        rows = replay(args.run, args.out, args.refine_peaks, args.refine_yaws, args.device, args.limit, args.shard)
     except SystemExit as e:
         print(e, file=sys.stderr)
         return 1
