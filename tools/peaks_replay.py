@@ -68,7 +68,7 @@ def run_args(run: Path, device: str | None, peaks: int, yaws: int) -> argparse.N
             f"peaks_replay: {run} searched --search {args.search}; only coarse-to-fine and exhaustive grids do not "
             "depend on --refine-peaks"
         )
-    if getattr(args, "rest", "truth") != "truth" or getattr(args, "joint", False):
+    if args.rest != "truth" or args.joint:
         raise SystemExit(f"peaks_replay: {run} searched --rest stable or --joint; only single --rest truth runs replay")
     if not args.refine:
         raise SystemExit(f"peaks_replay: {run} ran without refinement (--no-refine): there is nothing to replay")
@@ -85,13 +85,13 @@ def run_args(run: Path, device: str | None, peaks: int, yaws: int) -> argparse.N
     return args
 
 
-def pool_locations(smap, pool: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def pool_locations(smap, pool: int, name: str) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(i, j, seen) of the heat map's locations whose float32 best seen score is at least the `pool`-th best's:
     the true best `pool` locations are among them whatever the float64 scores were."""
     seen32 = np.asarray(smap.seen, dtype=np.float32)
     ok = np.isfinite(seen32)
     if not ok.any():
-        raise SystemExit("peaks_replay: a heat map holds no scored location")
+        raise SystemExit(f"peaks_replay: {name}: the heat map holds no scored location")
     i, j = np.nonzero(ok)
     s = seen32[i, j]
     cut = np.sort(s)[::-1][min(pool, len(s)) - 1]
@@ -99,7 +99,7 @@ def pool_locations(smap, pool: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]
     return i[keep], j[keep], s[keep]
 
 
-def grid_candidates(smap, space, pool: int):
+def grid_candidates(smap, space, pool: int, name: str):
     """(flat, x_m, y_m, yaw_rad, seen32) of the pool's candidates on the search's grid, from the heat map."""
     xs, ys, yaws = space.axes()
     if (
@@ -107,26 +107,27 @@ def grid_candidates(smap, space, pool: int):
         or len(ys) != len(smap.ys_m)
         or not (np.allclose(xs, smap.xs_m, atol=1e-9) and np.allclose(ys, smap.ys_m, atol=1e-9))
     ):
-        raise SystemExit("peaks_replay: a heat map's grid is not the run's search grid (other settings?)")
-    i, j, s = pool_locations(smap, pool)
+        raise SystemExit(f"peaks_replay: {name}: the heat map's grid is not the run's search grid (other settings?)")
+    i, j, s = pool_locations(smap, pool, name)
     yaw_seen = np.asarray(smap.seen_yaw_rad, dtype=np.float64)[i, j]
     turn = np.abs((yaws[None, :] - yaw_seen[:, None] + math.pi) % (2 * math.pi) - math.pi)
     k = np.argmin(turn, axis=1)
     if (turn[np.arange(len(k)), k] > 1e-5).any():
-        raise SystemExit("peaks_replay: a heat map's yaw is not one of the search grid's yaws")
+        raise SystemExit(f"peaks_replay: {name}: a heat map's yaw is not one of the search grid's yaws")
     flat = (i * len(ys) + j) * len(yaws) + k
     order = np.argsort(flat)  # ascending flat, as every search returns it
     return flat[order], xs[i][order], ys[j][order], yaws[k][order], s[order]
 
 
-def replay_target(engine, image, job, smap, done, config) -> dict:
-    """One target: the K = 1 check against the run's journal (done: its Done), then refine_peaks."""
+def replay_target(engine, image, job, smap, done, config, name: str) -> dict:
+    """One target: the K = 1 check against the run's journal (done: its Done), then refine_peaks; `name`:
+    the heat map's file, for errors."""
     from perch_warp.peaks import top_location_candidates
     from perch_warp.search.refine import refine, refine_peaks
 
     space = job.space
     service = engine.scoring(image, job.camera, job.table, job.resting, space)
-    flat, x, y, yaw, seen32 = grid_candidates(smap, space, config.pool)
+    flat, x, y, yaw, seen32 = grid_candidates(smap, space, config.pool, name)
     scores = service.quiet().score((x, y, yaw))
     if not np.array_equal(scores.astype(np.float32), seen32):
         bad = int(np.argmax(scores.astype(np.float32) != seen32))
@@ -140,11 +141,16 @@ def replay_target(engine, image, job, smap, done, config) -> dict:
     origin = (done.details.get("refine") or {}).get("from")
     if not origin:
         raise SystemExit(f"peaks_replay: target {job.target.key} has no refinement record in the run's journal")
-    first, _ = refine(service, space, [top[0]], engine.search)
+    made = refine(service, space, [top[0]], engine.search)
+    first = made[0][0]  # the best location refined: (x_m, y_m, yaw_rad, score)
+
+    def refine_fn(svc, space_, poses: list, grid_search: str):  # the best peak's refinement made once
+        return made if poses[0][:3] == top[0][:3] else refine(svc, space_, poses, grid_search)
+
     check = {
         "grid": [top[0][0], top[0][1], math.degrees(top[0][2]), top[0][3]],
         "run_grid": [origin["x_m"], origin["y_m"], origin["yaw_deg"], origin["score"]],
-        "refined_score": first[0][3],
+        "refined_score": first[3],
         "run_score": done.score,
     }
     same_grid = (
@@ -153,17 +159,17 @@ def replay_target(engine, image, job, smap, done, config) -> dict:
         and abs(origin["y_m"] - top[0][1]) < 1e-9
         and abs(origin["yaw_deg"] - math.degrees(top[0][2])) < 1e-6
     )
-    if not (same_grid and first[0][3] == done.score):
+    if not (same_grid and first[3] == done.score):
         raise SystemExit(f"peaks_replay: target {job.target.key}: refining the best location alone does not give "
                          f"the run's answer: {json.dumps(check)}")  # fmt: skip
-    best_top, info = refine_peaks(service, space, top, engine.search)
+    best_top, info = refine_peaks(service, space, top, engine.search, refine_fn)
     answer = best_top[0]
     return {
         "key": list(job.target.key),
         "obj_id": job.target.obj_id,
         "check": check,
         "answer": {"x_m": answer[0], "y_m": answer[1], "yaw_rad": answer[2], "score": answer[3]},
-        "same_as_run": answer[3] == done.score and answer[:3] == first[0][:3],
+        "same_as_run": answer[3] == done.score and answer[:3] == first[:3],
         "peaks": info.get("peaks", []),
     }
 
@@ -242,7 +248,9 @@ def replay(
         if smap.seen is None:
             raise SystemExit(f"peaks_replay: {path} predates heat maps' 'seen' (commit f0d8655)")
         job = prepare_job(im, t, tables, space_fn)
-        row = replay_target(estimator.engine(t.obj_id), load_rgb(im.rgb), job, smap, done[tuple(t.key)], config)
+        row = replay_target(
+            estimator.engine(t.obj_id), load_rgb(im.rgb), job, smap, done[tuple(t.key)], config, str(path)
+        )
         row["seconds"] = time.perf_counter() - t0
         # One write per line, appended: shards side by side on one journal never interleave within a line.
         fd = os.open(journal, os.O_WRONLY | os.O_APPEND | os.O_CREAT, 0o644)
@@ -277,9 +285,7 @@ def replay(
             }
             replayed[tuple(t.key)] = dataclasses.replace(base, R=R[0], t_m=tr[0], score=a["score"], details=details)
     errors = compute_errors(sel, replayed, tables, GeometryCache(sel.model_paths))
-    tmp = out / "per_target.csv.tmp"
-    write_per_target(tmp, errors)
-    tmp.replace(out / "per_target.csv")
+    write_per_target(out / "per_target.csv", errors)  # atomically
     meta = {"run": str(run.resolve()), "refine_peaks": peaks, "refine_yaws": yaws, "targets": len(rows)}
     atomic_write_text(out / "replay_config.json", json.dumps(meta, indent=1))
     return rows

@@ -103,16 +103,17 @@ def refine_place(service: ScoringService, space: SearchSpace, place: tuple, grid
     return best[0], {**best[1], "yaws_deg": [math.degrees(p[2]) for p in poses]}
 
 
-def refine_peaks(service: ScoringService, space: SearchSpace, top: list, grid_search: str):
+def refine_peaks(service: ScoringService, space: SearchSpace, top: list, grid_search: str, refine_fn=None):
     """`refine_place` on each of the grid's best `refine_peaks` distinct peaks (perch_warp.peaks: top holds
     the best candidate of each of the best locations; peaks are locations apart); the best refined pose
     first, then the other peaks' refined poses, then the runners-up. With one peak and one yaw, `refine`
-    itself. Returns (top, info); info["peaks"] lists each peak."""
+    itself. `refine_fn`: refine_place's, for the peaks' refinements (tools/peaks_replay.py: a refinement
+    it already made). Returns (top, info); info["peaks"] lists each peak."""
     cfg = service.config
     if cfg.refine_peaks <= 1 and cfg.refine_yaws <= 1:
         return refine(service, space, top, grid_search)
     idx, refined, order = refine_each(
-        top, cfg.refine_peaks, space, lambda i: refine_place(service, space, top[i], grid_search)
+        top, cfg.refine_peaks, space, lambda i: refine_place(service, space, top[i], grid_search, refine_fn)
     )
     best_info = {**refined[order[0]][1], "peaks": [peak_summary(c, i) for c, i in refined]}
     seen = {tuple(top[i][:3]) for i in idx}
