@@ -69,7 +69,8 @@ class EngineConfig:
     # What a candidate's score is made of (perch_warp.score_terms): a name ("thesis": the thesis's
     # formula; "grid-tolerant": the same with a grid stage that tolerates a one-cell misalignment;
     # "centred": grid-tolerant with the centred cosine blended in; "centred-4starts": centred with the
-    # rarity from the best of four k-means starts, chosen on the development set, docs/accuracy.md) or
+    # rarity from the best of four k-means starts; "centred-direction": centred-4starts with the rarity
+    # clustered on the direction of conv1's response, chosen on the development set, docs/accuracy.md) or
     # terms over the thesis's, e.g. "shift=1,shrink=16".
     score: str = DEFAULT_SCORE
 

@@ -43,8 +43,11 @@ def add_method_arguments(p: argparse.ArgumentParser) -> None:
         "--score",
         default=DEFAULT_SCORE,
         metavar="NAME|TERMS",
-        help="what a candidate's score is made of: centred-4starts (= shift=1,centre=0.5,inits=4: centred, "
-        "the photo's rarity from the best of four k-means starts), centred (= shift=1,centre=0.5: the pattern "
+        help="what a candidate's score is made of: centred-direction (= shift=1,centre=0.5,inits=4,"
+        "cluster=direction: centred-4starts, the photo's rarity clustered on the direction of conv1's "
+        "response, so how lit a window is does not make it rare), centred-4starts (= shift=1,centre=0.5,"
+        "inits=4: centred, the photo's rarity from the best of four k-means starts), centred (= shift=1,"
+        "centre=0.5: the pattern "
         "inside the silhouette counts beside its colours, and the grid stage tolerates a one-cell "
         "misalignment), grid-tolerant (= shift=1, the thesis's formula with that grid stage), thesis (the "
         "thesis's formula exactly), or terms over the thesis's such as surround=fill,background=0.5,shrink=16 "

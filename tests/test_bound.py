@@ -231,7 +231,7 @@ def test_pruned_progress_counts_ruled_out_candidates_when_they_are_ruled_out(sce
         "centre=1.0,shift=1,surround=weighted",
         "centred",
         "centred-4starts",
-        "shift=1,centre=0.5,inits=4,cluster=direction",
+        "centred-direction",
     ],
 )
 def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
@@ -262,7 +262,7 @@ def test_bound_is_admissible_for_every_score(scene, caffe_weights, score):
         "shade=0.8,shift=1",
         "centred",
         "centred-4starts",
-        "shift=1,centre=0.5,inits=4,cluster=direction",
+        "centred-direction",
     ],
 )
 def test_pruned_equals_exhaustive_under_a_new_score(scene, caffe_weights, score):

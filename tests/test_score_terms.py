@@ -19,6 +19,10 @@ def test_names_and_terms_parse():
     assert parse_score("grid-tolerant") == ("grid-tolerant", ScoreTerms(shift=1))
     assert parse_score("centred") == ("centred", ScoreTerms(shift=1, centre=0.5))
     assert parse_score("centred-4starts") == ("centred-4starts", ScoreTerms(shift=1, centre=0.5, inits=4))
+    assert parse_score("centred-direction") == (
+        "centred-direction",
+        ScoreTerms(shift=1, centre=0.5, inits=4, cluster="direction"),
+    )
     assert parse_score("shift=1,outline=0.25") == ("shift=1,outline=0.25", ScoreTerms(shift=1, outline=0.25))
 
 
