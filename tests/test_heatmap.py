@@ -202,3 +202,55 @@ def test_heat_map_over_several_resting_poses_is_the_best_over_pose_and_yaw(scene
                 ref.reshape(len(rests), len(xs), len(ys), len(yaws)).transpose(1, 2, 0, 3).reshape(len(xs), len(ys), -1)
             )
             assert np.array_equal(hm.best_yaw_rad, yaws[best.argmax(axis=2) % len(yaws)])
+
+
+def test_heat_map_draws_the_best_seen_where_the_best_is_not_known(scene):
+    """A coarse-to-fine map knows no cell's best, only what it scored: the picture shows those scores
+    (faded, as lower bounds) and ranks its peaks over them, instead of a map that is grey throughout."""
+    from perch_warp.heatmap import SEEN_FADE, UNKNOWN_GREY, _peaks, photo_layer, render_heatmap, shown_scores
+    from perch_warp.score_map import ScoreMap
+
+    xs, ys = np.arange(-0.04, 0.041, 0.01), np.arange(-0.03, 0.031, 0.01)
+    rng = np.random.default_rng(3)
+    seen = np.full((len(xs), len(ys)), -np.inf)
+    visited = rng.random(seen.shape) < 0.5
+    seen[visited] = rng.uniform(0.1, 0.6, visited.sum())
+    seen[2, 3], seen[6, 1] = 0.9, 0.8  # two distinct places, the first the higher
+    visited[2, 3] = visited[6, 1] = True
+    best = np.full(seen.shape, np.nan)
+    best[0, 0] = seen[0, 0] = 0.05  # one cell known exactly
+    visited[0, 0] = True
+    seen_yaw = np.where(visited, 0.5, np.nan)
+    m = ScoreMap(xs, ys, 0.01, best, np.full(seen.shape, np.inf), np.where(np.isfinite(best), 0.5, np.nan),
+                 "not visited by the coarse-to-fine search", seen, seen_yaw)  # fmt: skip
+
+    values, seen_only = shown_scores(m)
+    assert np.array_equal(seen_only, visited & np.isnan(best))
+    assert values[0, 0] == 0.05 and np.array_equal(values[seen_only], seen[seen_only])
+    assert np.all(np.isnan(values[~visited]))
+    peaks = _peaks(m, values)
+    assert len(m.peaks(5, 1)) == 1  # the known bests alone: one low cell
+    assert [(round(p[0], 3), round(p[1], 3), p[3]) for p in peaks[:2]] == [
+        (round(xs[2], 3), round(ys[3], 3), 0.9),
+        (round(xs[6], 3), round(ys[1], 3), 0.8),
+    ]
+
+    # Over the photo: the seen cell of 0.9 is coloured (faded), a cell nothing scored is grey.
+    import matplotlib as mpl
+
+    from perch_warp.heatmap import _norm, cell_quads
+
+    cmap, norm = mpl.colormaps["viridis"], _norm(values)
+    photo = np.zeros((scene.camera.height, scene.camera.width, 3), dtype=np.uint8)
+    layer = photo_layer(photo, scene.camera, scene.table, m, cmap, norm).astype(float)
+    uv, _ = cell_quads(m, scene.camera, scene.table)
+
+    def centre(i, j):
+        u, v = np.rint(uv[i, j].mean(axis=0)).astype(int)
+        return layer[v, u]
+
+    want = ((1 - SEEN_FADE) * np.asarray(cmap(norm(0.9))[:3]) + SEEN_FADE * np.asarray(UNKNOWN_GREY)) * 255 * 0.55
+    assert np.allclose(centre(2, 3), want, atol=2.0)
+    grey = np.argwhere(~visited)[0]
+    assert np.allclose(centre(*grey), np.asarray(UNKNOWN_GREY) * 255 * 0.55, atol=2.0)
+    assert render_heatmap(photo, scene.camera, scene.table, m, (xs[2], ys[3], 0.5), "t")[:4] == b"\x89PNG"

@@ -138,7 +138,8 @@ def _worst_heatmaps(out_dir: Path, rows: list[dict], names: dict, selection: Sel
             f"ADD-S {r['adds_mm']:.1f} mm, confidence {'-' if conf is None else format(conf, '.4f')}",
             fontsize=8,
         )
-        b.set_title("star: answer, x: ground truth, numbers: peaks; grey: " + (smap.why_unknown or "none"), fontsize=7)
+        b.set_title("star: answer, x: truth, numbers: peaks; faded: the best seen (a lower bound); grey: "
+                    + (smap.why_unknown or "none"), fontsize=7)  # fmt: skip
     fig.tight_layout()
     fig.savefig(out_dir / "worst_heatmaps.png", dpi=80)
     plt.close(fig)
