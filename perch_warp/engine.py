@@ -83,20 +83,25 @@ class Engine:
         t0 = time.perf_counter()
         self.score_name, self.terms = parse_score(self.config.score)  # perch_warp.score_terms
         raw = self.terms.raw_conv1_terms()
+        if self.terms.centre > 0.0:
+            raw.append(f"centre={self.terms.centre} (each candidate's features centred)")
         if raw and self.config.relu:
-            uses = " and ".join(raw)
-            raise PerchError(f"score {self.config.score!r} uses {uses}, which needs raw conv1: drop --relu")
+            # One message for every such term, so that dropping one does not only reveal the next.
+            it = "it" if len(raw) == 1 else "them"
+            raise PerchError(
+                f"score {self.config.score!r} uses {' and '.join(raw)}, which need{'s' if it == 'it' else ''} raw "
+                f"conv1: drop --relu, or use a score without {it} (e.g. --score grid-tolerant)"
+            )
         # Uploaded once, shared by both renderers; the score's texture term says how they read the texture.
         self.device_mesh = DeviceMesh(mesh, self.device, self.terms.texture)
         self._renderers: dict[str, Renderer] = {}
         self.renderer_for(self.default_renderer)  # built now: BVH construction is not a search stage's
         conv = self.config.conv if self.config.conv != "auto" else auto_conv(self.device, self.terms.centre)
-        if self.terms.centre > 0.0 and (conv != "torch" or self.config.relu):
+        if self.terms.centre > 0.0 and conv != "torch":
             raise PerchError(
                 f"score {self.config.score!r} centres each candidate's features (centre={self.terms.centre}), "
-                f"which kernel #2's torch form does on raw conv1 alone: use --conv torch"
-                + (" and drop --relu" if self.config.relu else "")
-                + ", or a score without it (e.g. --score grid-tolerant)"
+                "which kernel #2's torch form alone does: use --conv torch, or a score without it "
+                "(e.g. --score grid-tolerant)"
             )
         self.scorer = FeatureScorer(
             smoothed(weights, self.terms.smooth),

@@ -208,8 +208,11 @@ def test_centre_term_needs_the_torch_form_and_raw_conv1(scene, random_weights):
     Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centre=0.5", conv="torch"))
     # The default score has the term, so the error names a score without it as well.
     assert parse_score(EngineConfig().score)[1].centre > 0.0
-    with pytest.raises(PerchError, match="drop --relu, or a score without it .e.g. --score grid-tolerant"):
+    with pytest.raises(PerchError, match="drop --relu, or use a score without them .e.g. --score grid-tolerant"):
         Engine(scene.mesh, random_weights, DEVICE, EngineConfig(relu=True))
+    one = "uses centre=0.5 .* which needs raw conv1: drop --relu, or use a score without it "
+    with pytest.raises(PerchError, match=one):
+        Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centre=0.5", relu=True))
     Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="grid-tolerant", relu=True))
 
 
