@@ -83,8 +83,6 @@ class Engine:
         t0 = time.perf_counter()
         self.score_name, self.terms = parse_score(self.config.score)  # perch_warp.score_terms
         raw = self.terms.raw_conv1_terms()
-        if self.terms.centre > 0.0:
-            raw.append(f"centre={self.terms.centre} (each candidate's features centred)")
         if raw and self.config.relu:
             # One message for every such term, so that dropping one does not only reveal the next.
             it = "it" if len(raw) == 1 else "them"

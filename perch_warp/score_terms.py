@@ -221,6 +221,8 @@ class ScoreTerms:
             terms.append(f"rectified={self.rectified} (raw and rectified conv1 blended)")
         if self.cluster == "direction":
             terms.append("cluster=direction (k-means on the direction of conv1's response without its bias)")
+        if self.centre > 0.0:
+            terms.append(f"centre={self.centre} (each candidate's features centred)")
         return terms
 
     def below_grid(self) -> ScoreTerms:
