@@ -74,3 +74,26 @@ def test_direction_clusters_put_a_shadowed_face_with_its_lit_twin():
     unit = rarity(unit_responses(F, b), n_clusters=3, seed=0)
     assert raw[1260:].max() == 0.0 and raw[:700].max() == 0.0  # the dim face weighs 0 with the shadows
     assert unit[1200:].min() > 0.8 and unit[:700].max() == 0.0
+
+
+def test_kmeans_runs_on_one_thread_whatever_the_machine(monkeypatch):
+    # How scikit-learn splits k-means' sums over OpenMP threads can move a point to another cluster,
+    # so the fit must see one thread even where the caller allows more (a many-core GPU machine).
+    from threadpoolctl import threadpool_info, threadpool_limits
+
+    import perch_warp.rarity as rarity_module
+
+    seen: list[int] = []
+    fit_predict = rarity_module.KMeans.fit_predict
+
+    def spy(self, *args, **kwargs):
+        seen.extend(p["num_threads"] for p in threadpool_info() if p["user_api"] == "openmp")
+        return fit_predict(self, *args, **kwargs)
+
+    monkeypatch.setattr(rarity_module.KMeans, "fit_predict", spy)
+    feats = np.random.default_rng(1).normal(0, 1, (500, 8)).astype(np.float32)
+    with threadpool_limits(limits=2):
+        labels = kmeans_labels(feats, n_clusters=6, seed=0, inits=2)
+    assert seen, "no OpenMP thread pool seen during the k-means fit"
+    assert set(seen) == {1}
+    assert np.array_equal(labels, kmeans_labels(feats, n_clusters=6, seed=0, inits=2))
