@@ -132,3 +132,34 @@ def test_shrink_divides_the_top_sum_by_k_plus_k0(shrink):
         k = alpha_count(alpha, len(v))
         assert np.isclose(got[c], v[:k].sum() / (k + shrink), atol=1e-6)
         assert np.isclose(dev.numpy()[c], got[c], rtol=0, atol=1e-6)
+
+
+def test_point_values_reduce_to_the_scores_the_engine_computes(random_weights):
+    """ScoringService.point_values (the values tools/score_study.py keeps to study other reductions):
+    each pose's values, reduced by the NumPy top-α mean, give the score the engine's own path (the
+    device's reduction) gives; a pose that shows no feature point has none; the grid stage's
+    shift-tolerant score, several values per point, is refused with a message that says why."""
+    from perch_warp.demo import demo_scene
+    from perch_warp.engine import Engine, EngineConfig
+    from perch_warp.errors import PerchError
+
+    scene = demo_scene(seed=1)
+    engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centred", alpha=0.4))
+    service = engine.scoring(scene.image, scene.camera, scene.table, scene.resting)
+    gx, gy, gyaw = scene.truth_xy_yaw
+    rng = np.random.default_rng(0)
+    x = np.concatenate([[gx, 4.0], gx + rng.uniform(-0.1, 0.1, 10)])
+    y = np.concatenate([[gy, 4.0], gy + rng.uniform(-0.1, 0.1, 10)])
+    yaw = np.concatenate([[gyaw, 0.0], rng.uniform(0, 2 * np.pi, 10)])
+    with pytest.raises(PerchError, match="one value per point"):
+        service.point_values((x, y, yaw))
+    fine = service.refining()
+    values = fine.point_values((x, y, yaw))
+    scores = fine.score((x, y, yaw))
+    assert len(values[1]) == 0 and scores[1] == -np.inf  # 4 m away: off the image
+    lens = np.array([len(v) for v in values])
+    assert np.all(lens[np.isfinite(scores)] > 50)
+    ref, n = top_alpha_mean(np.concatenate(values), np.concatenate([[0], np.cumsum(lens)]), 0.4)
+    assert np.array_equal(n, lens)
+    assert np.allclose(ref[np.isfinite(scores)], scores[np.isfinite(scores)], rtol=0, atol=1e-6)
+    assert np.all(np.isneginf(ref[~np.isfinite(scores)]))

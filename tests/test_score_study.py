@@ -1,15 +1,21 @@
 """tools/score_study.py from-run: each target's pool is the best cells its search scored (the heat map's
-`seen`), best first, and its truth the ground truth on the table; heat maps without `seen` are refused."""
+`seen`), best first, and its truth the ground truth on the table; heat maps without `seen` are refused.
+values and reductions: the stored feature-point values reduce to the engine's scores, and each reduction
+is its definition."""
 
 import json
+import math
 
 import numpy as np
+import pytest
 from _tools import load_tool
 from test_bop import write_tiny_dataset
 from test_evaluate import FakeEstimator, run_eval
 
-from perch_warp import bop
+from perch_warp import bop, pose_error
 from perch_warp.demo import demo_scene
+from perch_warp.image import load_rgb
+from perch_warp.score import top_alpha_mean
 from perch_warp.score_map import ScoreMap
 from perch_warp.table import decompose_on_table
 
@@ -120,3 +126,92 @@ def test_merge_names_a_from_run_pools_score_and_refuses_a_missing_pool(tmp_path,
     assert tool.main(["merge", str(pa), str(missing), "--out", str(tmp_path / "m2.json")]) == 1
     err = capsys.readouterr().err.strip()
     assert f"{missing}: not found" in err and "\n" not in err and not (tmp_path / "m2.json").exists()
+
+
+def test_reductions_are_their_definitions_and_never_fall_when_a_value_rises():
+    """`reductions`' family against direct NumPy definitions on random values, and each non-decreasing in
+    every value (what keeps a silhouette bound of the same reduction admissible)."""
+    study = load_tool("score_study")
+    rng = np.random.default_rng(3)
+    for n in (1, 2, 7, 40, 333):
+        v = rng.normal(0.3, 0.3, n)
+        scores = {k: s[0] for k, s in study.reduce_values(v, np.array([n]), list(study.REDUCTIONS)).items()}
+        s = np.sort(v)[::-1]
+        for a in (0.25, 0.35, 0.5, 0.7, 1.0):
+            assert scores[f"top{a}"] == pytest.approx(top_alpha_mean(v, np.array([0, n]), a)[0][0], abs=1e-12)
+        for t in (0.0, 0.1, 0.2, 0.3):
+            assert scores[f"floor{t}"] == pytest.approx(np.mean([max(x, t) for x in v]), abs=1e-12)
+        for p in (0.1, 0.2, 0.3, 0.5):
+            brute = max(s[:k].mean() * (k / n) ** p for k in {max(1, math.ceil(a * n - 1e-9)) for a in
+                        np.linspace(0.2, 1.0, 17)})  # fmt: skip
+            assert scores[f"adaptive{p}"] == pytest.approx(brute, abs=1e-12)
+        k = max(1, math.ceil(0.5 * n - 1e-9))
+        for k0 in (16, 64):
+            assert scores[f"shrink{k0}"] == pytest.approx(s[:k].sum() / (k + k0), abs=1e-12)
+        for _ in range(5):
+            w = v.copy()
+            w[rng.integers(n)] += rng.uniform(0, 0.5)
+            raised = study.reduce_values(w, np.array([n]), list(study.REDUCTIONS))
+            assert all(raised[name][0] >= scores[name] - 1e-12 for name in scores)
+
+
+def test_values_of_a_target_are_the_scores_the_refining_engine_gives(tmp_path, random_weights):
+    """`values`' per-target record: the pool, each far peak's cell and the truth's cell (kinds 0, 1, 2), the
+    truth's ADD-S 0 at its own pose, and values whose top-0.5 mean is the engine's score below the grid."""
+    from perch_warp.engine import Engine, EngineConfig
+    from perch_warp.mesh import load_mesh
+
+    study = load_tool("score_study")
+    root = write_tiny_dataset(tmp_path / "ds")
+    sel = bop.select_targets(bop.open_dataset(root, "test", None))
+    im, tg = sel.images[0], sel.images[0].targets[0]
+    tables = bop.TableCache("auto")
+    table = tables.get(im)[0]
+    resting, x, y, yaw = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
+    row = {
+        "key": list(tg.key),
+        "gt": [x, y, yaw],
+        "pool": [[x + 0.05, y, yaw], [x, y - 0.05, 1.0], [x + 0.004, y, yaw]],
+    }
+    mesh = load_mesh(sel.model_paths[tg.obj_id])
+    engine = Engine(mesh, random_weights, "cpu", EngineConfig(score="centred", alpha=0.5))
+    points = pose_error.subsample_points(np.asarray(mesh.vertices_m))
+    data = study.values_target(engine, points, im, tg, row, tables, peaks=3)
+    # the two pool poses farther than 2 cm from the truth are far peaks, each with a 125-pose cell
+    assert np.array_equal(np.bincount(data["kind"]), [3, 250, 125])
+    truth = np.flatnonzero(data["kind"] == 2)[62]  # the cell's centre: the truth itself
+    assert np.allclose(data["poses"][truth], [x, y, yaw]) and data["adds_m"][truth] < 1e-6
+    assert data["adds_m"][0] > 0.02 and data["adds_m"][2] < 0.01
+    fine = engine.scoring(load_rgb(im.rgb), im.camera, table, resting).refining()
+    want = fine.score(tuple(data["poses"].T))
+    got = study.reduce_values(data["values"], data["lens"], ["top0.5"])["top0.5"]
+    assert np.isfinite(want).sum() > 300
+    assert np.array_equal(np.isinf(got), np.isinf(want))
+    assert np.allclose(got[np.isfinite(want)], want[np.isfinite(want)], rtol=0, atol=1e-6)
+
+
+def test_reductions_pair_each_pick_with_the_base(tmp_path, capsys):
+    """`reductions` on two made-up targets, each a truth 35 % visible (those points match well, the rest
+    not at all) against a look-alike matching middling everywhere: the top-0.5 mean (the base) picks the
+    truth in both, the plain mean (floor0.0) the look-alike in both, and the losses are named by target."""
+    study = load_tool("score_study")
+    rng = np.random.default_rng(0)
+    look_alike = np.full(100, 0.45) + rng.normal(0, 0.01, 100)
+    truth = np.concatenate([np.full(35, 0.9), np.full(65, 0.0)])  # 35 % visible: 0.63 at top-0.5, 0.315 as a plain mean
+    for key, vals, adds in (((1, 1, 0), [look_alike, truth], [0.2, 0.0]), ((1, 2, 0), [truth, look_alike], [0.0, 0.2])):
+        np.savez(
+            tmp_path / study.values_file(key),
+            key=np.array(key),
+            obj_id=np.int64(1),
+            visib_fract=np.float64(0.35),
+            poses=np.zeros((2, 3)),
+            kind=np.array([0, 2], np.int8),
+            adds_m=np.array(adds),
+            lens=np.array([100, 100]),
+            values=np.concatenate(vals).astype(np.float32),
+        )
+    assert study.main(["reductions", str(tmp_path)]) == 0
+    out = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[2:]}
+    assert "+[] -[]" in out["top0.5"] and "100.00" in out["top0.5"]
+    assert "-[(1, 1, 0), (1, 2, 0)]" in out["floor0.0"]  # the mean of all: 0.315 < 0.45, the look-alike wins both
+    assert study.main(["reductions", str(tmp_path / "none")]) == 1

@@ -9,6 +9,8 @@ then re-score them under every candidate score (issue 17's development protocol)
         [--alpha 0.5]
         [--out STUDY.json]
     python tools/score_study.py summary STUDY.json [--base SCORE]
+    python tools/score_study.py values POOL.json --out VALUES/ [--score centred-direction] [--peaks 3]
+    python tools/score_study.py reductions VALUES/ [--base top0.5] [--verbose]
 
 `collect` runs, per target (thesis protocol: height, roll and pitch from the ground truth), the
 exact (pruned) search of the default region on a coarse grid under a score (`--score`, the thesis's
@@ -29,6 +31,12 @@ the truth), paired against the first score with a bootstrap interval of the diff
 truth only defines the cell that is scored, never a score. It is an approximation of a full search
 (the pool comes from one score's search: a place only another score ranks high is not in it), meant
 for ranking variants; the frozen score is then checked with full searches (`perch_warp eval`).
+
+`values` keeps, for the same poses as `rescore` (the pool, the far peaks' cells, the truth's cell), every
+pose's feature-point values under one score below the grid (ScoringService.point_values: the numbers
+whose top-α mean is its score) and its ADD-S, a file per target. `reductions` then tries other ways of
+reducing a pose's values to its score (REDUCTIONS: top-α for several α, floors, an adaptive α, shrink)
+on those files, without rendering anything again, and pairs each with the top-0.5 mean.
 """
 
 from __future__ import annotations
@@ -51,8 +59,10 @@ from perch_warp.eval.plots import heatmap_path
 from perch_warp.features import load_feature_weights
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
-from perch_warp.outputs import atomic_write_text
+from perch_warp.outputs import atomic_write, atomic_write_text
+from perch_warp.score import alpha_count
 from perch_warp.score_map import ScoreMap
+from perch_warp.score_terms import DEFAULT_SCORE
 from perch_warp.search_space import SearchSpace
 from perch_warp.table import decompose_on_table, model_to_camera
 
@@ -341,6 +351,161 @@ def _rescore_target(
     }
 
 
+def values(args: argparse.Namespace) -> None:
+    """Every pooled pose's feature-point values under one score, a file per target (resumable)."""
+    meta = json.loads(Path(args.pool).read_text())
+    ds = bop.open_dataset(meta["dataset"], "test", meta["models"])
+    weights = load_feature_weights(args.weights or meta["weights"])
+    sel = bop.select_targets(ds, sorted({t["key"][0] for t in meta["targets"]}))
+    by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
+    tables = bop.TableCache("auto")
+    args.out.mkdir(parents=True, exist_ok=True)
+    engines: dict[int, tuple[Engine, np.ndarray]] = {}
+    rows = [t for t in meta["targets"] if tuple(t["key"]) in by_key][: args.limit]
+    t_all = time.perf_counter()
+    for row in rows:
+        path = args.out / values_file(row["key"])
+        if path.is_file():
+            continue
+        t = time.perf_counter()
+        im, tg = by_key[tuple(row["key"])]
+        if tg.obj_id not in engines:
+            mesh = load_mesh(sel.model_paths[tg.obj_id])
+            cfg = EngineConfig(search="pruned", refine=False, score=args.score, alpha=0.5, cpu_threads=1)
+            points = pose_error.subsample_points(np.asarray(mesh.vertices_m))
+            engines[tg.obj_id] = (Engine(mesh, weights, "cpu", cfg), points)
+        data = values_target(*engines[tg.obj_id], im, tg, row, tables, args.peaks)
+        atomic_write(path, lambda f, data=data: np.savez_compressed(f, **data))
+        print(f"{row['key']} obj {tg.obj_id}: {len(data['adds_m'])} poses, {time.perf_counter() - t:.1f} s",
+              file=sys.stderr, flush=True)  # fmt: skip
+    print(f"{len(rows)} targets' values in {args.out} ({time.perf_counter() - t_all:.0f} s)", file=sys.stderr)
+
+
+def values_file(key) -> str:
+    return "values_" + "_".join(str(k) for k in key) + ".npz"
+
+
+def values_target(engine: Engine, points: np.ndarray, im, tg, row: dict, tables, peaks: int) -> dict:
+    """One target's poses (the pool, each far peak's cell and the truth's cell: `kind` 0, 1, 2), their
+    ADD-S (m) and every pose's feature-point values under the engine's score below the grid (the
+    refinement's: the grid's shift tolerance off), concatenated (`lens` per pose)."""
+    table, _ = tables.get(im)
+    resting, *_ = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
+    pool = np.asarray(row["pool"], dtype=np.float64).reshape(-1, 3)
+    cells = [_cell(p) for p in far_peaks(pool, row["gt"], peaks)]
+    truth = _cell(row["gt"])
+    poses = np.concatenate([pool, *cells, truth])
+    kind = np.repeat([0, 1, 2], [len(pool), sum(len(c) for c in cells), len(truth)]).astype(np.int8)
+    service = engine.scoring(load_rgb(im.rgb), im.camera, table, resting).refining()
+    vals = service.point_values((poses[:, 0], poses[:, 1], poses[:, 2]))
+    R, t = model_to_camera(table, resting, *poses.T)
+    adds = np.array([pose_error.adi(R[i], t[i], tg.R_gt, tg.t_gt_m, points) for i in range(len(poses))])
+    return {
+        "key": np.asarray(row["key"]),
+        "obj_id": np.int64(tg.obj_id),
+        "visib_fract": np.float64(np.nan if tg.visib_fract is None else tg.visib_fract),
+        "poses": poses,
+        "kind": kind,
+        "adds_m": adds,
+        "lens": np.array([len(v) for v in vals], dtype=np.int64),
+        "values": np.concatenate([np.zeros(0, np.float32), *vals]),
+    }
+
+
+def _top(alpha: float):
+    return lambda m, s: m[alpha_count(alpha, len(s)) - 1]
+
+
+def _floor(tau: float):
+    return lambda m, s: float(np.maximum(s, tau).mean())
+
+
+def _adaptive(p: float):
+    def f(m: np.ndarray, s: np.ndarray) -> float:
+        k = np.unique([alpha_count(a, len(s)) for a in np.arange(0.2, 1.0 + 1e-9, 0.05)])
+        return float(np.max(m[k - 1] * (k / len(s)) ** p))
+
+    return f
+
+
+def _shrunk(k0: int):
+    def f(m: np.ndarray, s: np.ndarray) -> float:
+        k = alpha_count(0.5, len(s))
+        return float(m[k - 1] * k / (k + k0))
+
+    return f
+
+
+# Reductions of a pose's n feature-point values (s: sorted, largest first; m[k - 1]: the mean of the best
+# k) to its score. `top0.5` is every score's (the top-α mean, α = 0.5); each is non-decreasing in every
+# value, so a silhouette bound of the same reduction of the points' ceilings would stay admissible.
+REDUCTIONS = {
+    **{f"top{a}": _top(a) for a in (0.25, 0.35, 0.5, 0.7, 1.0)},
+    # every point counts, one below tau as tau: an occluded point costs at most tau, whatever covers it
+    **{f"floor{t}": _floor(t) for t in (0.0, 0.1, 0.2, 0.3)},
+    # the best top-a mean over a in [0.2, 1] times a^p: a smaller visible share may win if it matches better
+    **{f"adaptive{p}": _adaptive(p) for p in (0.1, 0.2, 0.3, 0.5)},
+    # the top-0.5 sum over k + k0 (score term shrink)
+    **{f"shrink{k}": _shrunk(k) for k in (16, 64)},
+}
+
+
+def reduce_values(values: np.ndarray, lens: np.ndarray, names) -> dict[str, np.ndarray]:
+    """Per reduction, each pose's score (-inf where it has no value)."""
+    off = np.concatenate([[0], np.cumsum(lens)])
+    out = {n: np.full(len(lens), -np.inf) for n in names}
+    for i in np.flatnonzero(lens):
+        s = np.sort(values[off[i] : off[i + 1]].astype(np.float64))[::-1]
+        m = np.cumsum(s) / np.arange(1, len(s) + 1)
+        for n in names:
+            out[n][i] = REDUCTIONS[n](m, s)
+    return out
+
+
+def reductions(args: argparse.Namespace) -> None:
+    """Each reduction's pick per target (the best of all its poses: every peak refined), paired with the base."""
+    files = sorted(Path(args.dir).glob("values_*.npz"))
+    if not files:
+        raise PerchError(f"{args.dir}: no values_*.npz (score_study.py values writes them)")
+    if args.base not in REDUCTIONS:
+        raise PerchError(f"--base {args.base}: not a reduction ({', '.join(REDUCTIONS)})")
+    names = [args.base, *(n for n in REDUCTIONS if n != args.base)]
+    results: dict[str, list[dict]] = {n: [] for n in names}
+    margins: dict[str, list[float]] = {n: [] for n in names}
+    visib = []
+    for f in files:
+        z = np.load(f)
+        adds, right = z["adds_m"], z["adds_m"] < 0.02
+        scores = reduce_values(z["values"], z["lens"], names)
+        visib.append(float(z["visib_fract"]))
+        for n in names:
+            e = float(adds[int(np.argmax(scores[n]))])
+            results[n].append({"key": z["key"].tolist(), "adds_m": e, "adds_grid_m": e})
+            # the best right pose's score less the best wrong one's (nan where either is missing)
+            ok = right.any() and (~right).any()
+            margins[n].append(float(scores[n][right].max() - scores[n][~right].max()) if ok else float("nan"))
+    report = summarise(results, args.base)
+    low = np.array(visib) < 0.5
+    print(f"{len(files)} targets, {int(low.sum())} less than half visible; every pose of each scored (all peaks "
+          "refined), paired with " + args.base)  # fmt: skip
+    print(f"{'reduction':14s} {'AUC':>6s} {'dAUC [95% CI]':>22s} {'<2cm %':>7s} {'<2cm: vis<0.5':>13s} {'vis>=0.5':>9s}"
+          f" {'median margin':>13s}  gained / lost against the base")  # fmt: skip
+    e0 = np.array([o["adds_m"] for o in results[args.base]])
+    for n in names:
+        row, e = report["table"][n], np.array([o["adds_m"] for o in results[n]])
+        keys = [tuple(o["key"]) for o in results[n]]
+        gained = [keys[i] for i in np.flatnonzero((e < 0.02) & (e0 >= 0.02))]
+        lost = [keys[i] for i in np.flatnonzero((e >= 0.02) & (e0 < 0.02))]
+        lo_hit, hi_hit = int((e[low] < 0.02).sum()), int((e[~low] < 0.02).sum())
+        print(f"{n:14s} {row['auc']:6.2f} {row['d_auc']:+7.2f} [{row['d_auc_ci'][0]:+6.2f},{row['d_auc_ci'][1]:+6.2f}]"
+              f" {row['below_2cm']:7.2f} {lo_hit:>6d} of {int(low.sum()):<4d} {hi_hit:>3d} of {int((~low).sum()):<3d}"
+              f" {np.nanmedian(margins[n]):+13.3f}  +{gained} -{lost}")  # fmt: skip
+    if args.verbose:
+        for i in range(len(files)):
+            cells = " ".join(f"{n} {100 * results[n][i]['adds_m']:.1f} cm ({margins[n][i]:+.3f})" for n in names)
+            print(f"  {tuple(results[args.base][i]['key'])} visible {visib[i]:.2f}: {cells}")
+
+
 def _print_score_line(spec: str, out: list[dict], t0: float) -> None:
     """One score's line on stderr: AUC and < 2 cm with every peak refined and with the grid's best only."""
     e = np.array([o["adds_m"] for o in out])
@@ -439,6 +604,17 @@ def main(argv: list[str] | None = None) -> int:
     r.add_argument("--peaks", type=int, default=3, help="distinct far pool peaks refined like the truth (default 3)")
     r.add_argument("--verbose", action="store_true", help="a line per target")
     r.add_argument("--out", type=Path)
+    v = sub.add_parser("values", help="every pooled pose's feature-point values under one score, a file per target")
+    v.add_argument("pool", type=Path)
+    v.add_argument("--out", type=Path, required=True, help="folder of values_*.npz (resumes: files there are kept)")
+    v.add_argument("--score", default=DEFAULT_SCORE, help=f"the score (default {DEFAULT_SCORE}); below the grid")
+    v.add_argument("--weights", help="feature weights (default: the pool's run's)")
+    v.add_argument("--peaks", type=int, default=3, help="distinct far pool peaks refined like the truth (default 3)")
+    v.add_argument("--limit", type=int)
+    rd = sub.add_parser("reductions", help="each reduction of the stored values to a score, paired with the base")
+    rd.add_argument("dir", type=Path, help="the folder `values` wrote")
+    rd.add_argument("--base", default="top0.5", help="the reduction paired against (default top0.5, every score's)")
+    rd.add_argument("--verbose", action="store_true", help="a line per target")
     m = sub.add_parser("merge", help="one pool from several collected under different scores")
     m.add_argument("pools", type=Path, nargs="+")
     m.add_argument("--out", type=Path, required=True)
@@ -447,7 +623,9 @@ def main(argv: list[str] | None = None) -> int:
     sh.add_argument("--base", help="the score the others are paired against (default: the first)")
     args = p.parse_args(argv)
     try:
-        {"collect": collect, "from-run": from_run, "merge": merge, "rescore": rescore, "summary": show}[args.cmd](args)
+        commands = {"collect": collect, "from-run": from_run, "merge": merge, "rescore": rescore, "summary": show,
+                    "values": values, "reductions": reductions}  # fmt: skip
+        commands[args.cmd](args)
     except PerchError as e:
         print(f"error: {e}", file=sys.stderr)
         return 1

@@ -27,7 +27,7 @@ from ..errors import PerchError
 from ..features import FeatureWeights
 from ..footing import footing, footprint_radius_m, likeness_map
 from ..image import check_rgb
-from ..kernels.features import PointWeights
+from ..kernels.features import NOT_ON_MASK, PointWeights
 from ..kernels.render import Shading
 from ..outline import edge_ceiling, edge_map
 from ..rarity import rarity_and_labels, unit_responses
@@ -350,14 +350,8 @@ class ScoringService:
         of `shifts`, exposure `gains` and `tone` exposures) -> top-α mean (the best of them); their scores on
         the host and the seconds each stage took."""
         laps: dict[str, float] = {}
-        photo, scorer = self.photo, self.backends.scorer
+        vals, pt_off = self._point_values(c, shifts, gains, tone, idx, laps)
         t = time.perf_counter()
-        batch = self.renderer.render(self.camera, c.R[idx], c.tr[idx], c.boxes[idx], self.shading())
-        t = self.lap("render", t, laps)
-        vals, pt_off = scorer.score_points(
-            photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights, shifts, gains, tone
-        )
-        t = self.lap("features_score", t, laps)
         # The same kernel on every device, so CPU and GPU runs take the same path to a score.
         n_blocks = shifts.shape[0] * gains.shape[0] * len(tone)
         batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha, self.terms.shrink, n_blocks)
@@ -366,6 +360,53 @@ class ScoringService:
         out = best_over_shifts(batch_scores.numpy(), n_blocks)
         self.lap("transfer", t, laps)
         return out, laps
+
+    def _point_values(
+        self, c: Candidates, shifts: wp.array, gains: wp.array, tone: np.ndarray, idx, laps: dict[str, float]
+    ) -> tuple[wp.array, wp.array]:
+        """Candidates `idx`: render (kernel #1) -> each feature point's value (kernel #2), on the device:
+        values and per-candidate offsets (FeatureScorer.score_points' layout), the stages' seconds into laps."""
+        photo, scorer = self.photo, self.backends.scorer
+        t = time.perf_counter()
+        batch = self.renderer.render(self.camera, c.R[idx], c.tr[idx], c.boxes[idx], self.shading())
+        t = self.lap("render", t, laps)
+        vals, pt_off = scorer.score_points(
+            photo.image, batch, c.gboxes[idx], photo.obs, photo.norm, photo.weights, shifts, gains, tone
+        )
+        self.lap("features_score", t, laps)
+        return vals, pt_off
+
+    def point_values(self, poses) -> list[np.ndarray]:
+        """Each pose's feature-point values, float32, one per point of its silhouette (empty where it shows
+        none): the numbers whose top-α mean is its score, kept so that other reductions can be studied
+        on them (tools/score_study.py values). Only for a score with one value per point: below the grid
+        (`refining()`, no shift tolerance) and without the exposure or tone variants. A place's table
+        term (c.prior) is added to a score after the reduction and is not among them."""
+        scorer = self.backends.scorer
+        shifts, gains, tone = (
+            scorer.shifts(self.terms.shift),
+            scorer.gains(self.terms.exposure),
+            tone_gains(self.terms.tone),
+        )
+        if shifts.shape[0] * gains.shape[0] * len(tone) != 1:
+            raise PerchError(
+                f"point values need one value per point; score {self.terms.spec()!r} has several "
+                "(shift, exposure or tone): take them from the refining service (below the grid)"
+            )
+        poses = _as_source(poses)
+        out = [np.zeros(0, np.float32)] * poses.n
+        with scorer.conv_settings():
+            for idx in poses.chunks():
+                c = self.setup(poses, idx)
+                sizes = c.boxes[c.live, 2].astype(np.int64) * c.boxes[c.live, 3]
+                for lo, hi in split_by_budget(sizes, self.budget()):
+                    b = c.live[lo:hi]
+                    vals, pt_off = self._point_values(c, shifts, gains, tone, b, {})
+                    v, o = vals.numpy(), pt_off.numpy()
+                    for a, i in enumerate(b.tolist()):
+                        x = v[o[a] : o[a + 1]]
+                        out[idx[i]] = x[x > NOT_ON_MASK / 2].copy()
+        return out
 
     def _bound_batch(self, c: Candidates, ceiling: wp.array, idx) -> tuple[np.ndarray, dict[str, float]]:
         """Candidates `idx`: upper bounds of their scores from their silhouettes (`ceiling`: the photo's
