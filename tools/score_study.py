@@ -252,15 +252,27 @@ def far_peaks(pool: np.ndarray, gt, n: int, apart_m: float = 0.03, away_m: float
     return np.array(keep).reshape(-1, 3)
 
 
-def rescore(args: argparse.Namespace) -> None:
-    meta = json.loads(Path(args.pool).read_text())
+def _open_pool(pool: Path, weights: str | None, limit: int | None):
+    """A pool file's dataset selection, its targets by key ((image, target)), its first `limit` rows that
+    the dataset holds, and the feature weights (`weights`, else the pool's own)."""
+    meta = json.loads(Path(pool).read_text())
     ds = bop.open_dataset(meta["dataset"], "test", meta["models"])
-    weights = load_feature_weights(meta["weights"])
-    scenes = sorted({t["key"][0] for t in meta["targets"]})
-    sel = bop.select_targets(ds, scenes)
+    sel = bop.select_targets(ds, sorted({t["key"][0] for t in meta["targets"]}))
     by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
+    rows = [t for t in meta["targets"] if tuple(t["key"]) in by_key][:limit]
+    return sel, by_key, rows, load_feature_weights(weights or meta["weights"])
+
+
+def _study_poses(row: dict, peaks: int) -> tuple[np.ndarray, list[np.ndarray], np.ndarray]:
+    """A pooled target's poses to score: its pool, the cell of each of its `peaks` best far peaks (so the
+    distractors are refined like the truth, and neither side gains from the finer cell), the truth's cell."""
+    pool = np.asarray(row["pool"], dtype=np.float64).reshape(-1, 3)
+    return pool, [_cell(p) for p in far_peaks(pool, row["gt"], peaks)], _cell(row["gt"])
+
+
+def rescore(args: argparse.Namespace) -> None:
+    sel, by_key, targets, weights = _open_pool(args.pool, None, args.limit)
     tables = bop.TableCache("auto")
-    targets = [t for t in meta["targets"] if tuple(t["key"]) in by_key][: args.limit]
     results: dict[str, list[dict]] = {}
     meshes: dict[int, object] = {}
     points: dict[int, np.ndarray] = {}
@@ -304,10 +316,7 @@ def _rescore_target(
     scores of the truth's cell, its grid neighbours and the pool (printed with --verbose)."""
     table, _ = tables.get(im)
     resting, *_ = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
-    cell = _cell(row["gt"])
-    pool = np.asarray(row["pool"], dtype=np.float64).reshape(-1, 3)
-    # Distractors are refined like the truth, so that neither side gains from the finer cell.
-    peaks = [_cell(p) for p in far_peaks(pool, row["gt"], args.peaks)]
+    pool, peaks, cell = _study_poses(row, args.peaks)
     others = np.concatenate([pool, *peaks])
     grid_truth = _grid_neighbours(row["gt"])
     poses = np.concatenate([others, cell, grid_truth])
@@ -353,15 +362,10 @@ def _rescore_target(
 
 def values(args: argparse.Namespace) -> None:
     """Every pooled pose's feature-point values under one score, a file per target (resumable)."""
-    meta = json.loads(Path(args.pool).read_text())
-    ds = bop.open_dataset(meta["dataset"], "test", meta["models"])
-    weights = load_feature_weights(args.weights or meta["weights"])
-    sel = bop.select_targets(ds, sorted({t["key"][0] for t in meta["targets"]}))
-    by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
+    sel, by_key, rows, weights = _open_pool(args.pool, args.weights, args.limit)
     tables = bop.TableCache("auto")
     args.out.mkdir(parents=True, exist_ok=True)
     engines: dict[int, tuple[Engine, np.ndarray]] = {}
-    rows = [t for t in meta["targets"] if tuple(t["key"]) in by_key][: args.limit]
     t_all = time.perf_counter()
     for row in rows:
         path = args.out / values_file(row["key"])
@@ -391,9 +395,7 @@ def values_target(engine: Engine, points: np.ndarray, im, tg, row: dict, tables,
     refinement's: the grid's shift tolerance off), concatenated (`lens` per pose)."""
     table, _ = tables.get(im)
     resting, *_ = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
-    pool = np.asarray(row["pool"], dtype=np.float64).reshape(-1, 3)
-    cells = [_cell(p) for p in far_peaks(pool, row["gt"], peaks)]
-    truth = _cell(row["gt"])
+    pool, cells, truth = _study_poses(row, peaks)
     poses = np.concatenate([pool, *cells, truth])
     kind = np.repeat([0, 1, 2], [len(pool), sum(len(c) for c in cells), len(truth)]).astype(np.int8)
     service = engine.scoring(load_rgb(im.rgb), im.camera, table, resting).refining()
@@ -478,12 +480,12 @@ def reductions(args: argparse.Namespace) -> None:
         adds, right = z["adds_m"], z["adds_m"] < 0.02
         scores = reduce_values(z["values"], z["lens"], names)
         visib.append(float(z["visib_fract"]))
+        both = right.any() and (~right).any()  # a margin needs a right and a wrong pose
         for n in names:
             e = float(adds[int(np.argmax(scores[n]))])
             results[n].append({"key": z["key"].tolist(), "adds_m": e, "adds_grid_m": e})
-            # the best right pose's score less the best wrong one's (nan where either is missing)
-            ok = right.any() and (~right).any()
-            margins[n].append(float(scores[n][right].max() - scores[n][~right].max()) if ok else float("nan"))
+            # the best right pose's score less the best wrong one's
+            margins[n].append(float(scores[n][right].max() - scores[n][~right].max()) if both else float("nan"))
     report = summarise(results, args.base)
     low = np.array(visib) < 0.5
     print(f"{len(files)} targets, {int(low.sum())} less than half visible; every pose of each scored (all peaks "

@@ -321,14 +321,7 @@ class ScoringService:
         """out[idx] = the scores of candidates idx of c (render, features, top-α), in batches."""
         sizes = c.boxes[idx, 2].astype(np.int64) * c.boxes[idx, 3]
         stats.rays += int(sizes.sum())
-        scorer = self.backends.scorer
-        work = functools.partial(
-            self._score_batch,
-            c,
-            scorer.shifts(self.terms.shift),
-            scorer.gains(self.terms.exposure),
-            tone_gains(self.terms.tone),
-        )
+        work = functools.partial(self._score_batch, c, *self._variants())
         self._batched(work, idx, sizes, out, stats, self.bar if progress else None)
         if c.prior is not None:
             out[idx] += c.prior[idx]
@@ -376,37 +369,48 @@ class ScoringService:
         self.lap("features_score", t, laps)
         return vals, pt_off
 
+    def _variants(self) -> tuple[wp.array, wp.array, np.ndarray]:
+        """What kernel #2 scores each point under: the grid's shifts, the exposure gains, the tone exposures."""
+        scorer = self.backends.scorer
+        return scorer.shifts(self.terms.shift), scorer.gains(self.terms.exposure), tone_gains(self.terms.tone)
+
     def point_values(self, poses) -> list[np.ndarray]:
         """Each pose's feature-point values, float32, one per point of its silhouette (empty where it shows
         none): the numbers whose top-α mean is its score, kept so that other reductions can be studied
         on them (tools/score_study.py values). Only for a score with one value per point: below the grid
         (`refining()`, no shift tolerance) and without the exposure or tone variants. A place's table
         term (c.prior) is added to a score after the reduction and is not among them."""
-        scorer = self.backends.scorer
-        shifts, gains, tone = (
-            scorer.shifts(self.terms.shift),
-            scorer.gains(self.terms.exposure),
-            tone_gains(self.terms.tone),
-        )
+        shifts, gains, tone = self._variants()
         if shifts.shape[0] * gains.shape[0] * len(tone) != 1:
             raise PerchError(
                 f"point values need one value per point; score {self.terms.spec()!r} has several "
                 "(shift, exposure or tone): take them from the refining service (below the grid)"
             )
         poses = _as_source(poses)
-        out = [np.zeros(0, np.float32)] * poses.n
-        with scorer.conv_settings():
-            for idx in poses.chunks():
-                c = self.setup(poses, idx)
-                sizes = c.boxes[c.live, 2].astype(np.int64) * c.boxes[c.live, 3]
-                for lo, hi in split_by_budget(sizes, self.budget()):
-                    b = c.live[lo:hi]
-                    vals, pt_off = self._point_values(c, shifts, gains, tone, b, {})
-                    v, o = vals.numpy(), pt_off.numpy()
-                    for a, i in enumerate(b.tolist()):
-                        x = v[o[a] : o[a + 1]]
-                        out[idx[i]] = x[x > NOT_ON_MASK / 2].copy()
-        return out
+        out = np.empty(poses.n, dtype=object)
+        out.fill(np.zeros(0, np.float32))  # poses that show no feature point keep it
+        for idx in poses.chunks():
+            c = self.setup(poses, idx)
+            part = out[idx]  # a copy (fancy indexing), written back below
+            sizes = c.boxes[c.live, 2].astype(np.int64) * c.boxes[c.live, 3]
+            work = functools.partial(self._values_batch, c, shifts, gains, tone)
+            self._batched(work, c.live, sizes, part, SearchStats(), None)
+            out[idx] = part
+        return list(out)
+
+    def _values_batch(
+        self, c: Candidates, shifts: wp.array, gains: wp.array, tone: np.ndarray, idx
+    ) -> tuple[np.ndarray, dict[str, float]]:
+        """Candidates `idx`: their on-mask feature-point values on the host, one array each (an object
+        array, for _batched), and the seconds each stage took."""
+        laps: dict[str, float] = {}
+        vals, pt_off = self._point_values(c, shifts, gains, tone, idx, laps)
+        v, o = vals.numpy(), pt_off.numpy()
+        out = np.empty(len(idx), dtype=object)
+        for a in range(len(idx)):
+            x = v[o[a] : o[a + 1]]
+            out[a] = x[x > NOT_ON_MASK / 2].copy()
+        return out, laps
 
     def _bound_batch(self, c: Candidates, ceiling: wp.array, idx) -> tuple[np.ndarray, dict[str, float]]:
         """Candidates `idx`: upper bounds of their scores from their silhouettes (`ceiling`: the photo's
