@@ -215,3 +215,16 @@ def test_reductions_pair_each_pick_with_the_base(tmp_path, capsys):
     assert "+[] -[]" in out["top0.5"] and "100.00" in out["top0.5"]
     assert "-[(1, 1, 0), (1, 2, 0)]" in out["floor0.0"]  # the mean of all: 0.315 < 0.45, the look-alike wins both
     assert study.main(["reductions", str(tmp_path / "none")]) == 1
+    assert study.main(["reductions", str(tmp_path), "--base", "top0.4"]) == 1
+    err = capsys.readouterr().err
+    assert "no values_*.npz" in err and "--base top0.4: not a reduction" in err
+
+
+@pytest.mark.parametrize("command", ["values", "rescore"])
+def test_a_missing_pool_is_named_in_one_line(tmp_path, capsys, command):
+    study = load_tool("score_study")
+    extra = ["--out", str(tmp_path / "v")] if command == "values" else ["--score", "thesis"]
+    assert study.main([command, str(tmp_path / "nope.json"), *extra]) == 1
+    err = capsys.readouterr().err
+    assert err.startswith("error: ") and "nope.json: not found" in err and err.count("\n") == 1
+    assert not (tmp_path / "v").exists()

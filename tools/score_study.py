@@ -255,6 +255,8 @@ def far_peaks(pool: np.ndarray, gt, n: int, apart_m: float = 0.03, away_m: float
 def _open_pool(pool: Path, weights: str | None, limit: int | None):
     """A pool file's dataset selection, its targets by key ((image, target)), its first `limit` rows that
     the dataset holds, and the feature weights (`weights`, else the pool's own)."""
+    if not Path(pool).is_file():
+        raise PerchError(f"{pool}: not found (rescore and values read pools written by collect, from-run or merge)")
     meta = json.loads(Path(pool).read_text())
     ds = bop.open_dataset(meta["dataset"], "test", meta["models"])
     sel = bop.select_targets(ds, sorted({t["key"][0] for t in meta["targets"]}))

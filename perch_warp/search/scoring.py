@@ -376,8 +376,9 @@ class ScoringService:
 
     def point_values(self, poses) -> list[np.ndarray]:
         """Each pose's feature-point values, float32, one per point of its silhouette (empty where it shows
-        none): the numbers whose top-α mean is its score, kept so that other reductions can be studied
-        on them (tools/score_study.py values). Only for a score with one value per point: below the grid
+        none); poses as for score(): table-frame x_m, y_m, yaw_rad arrays or a PoseSource. They are the
+        numbers whose top-α mean is its score, kept so that other reductions can be studied on them
+        (tools/score_study.py values). Only for a score with one value per point: below the grid
         (`refining()`, no shift tolerance) and without the exposure or tone variants. A place's table
         term (c.prior) is added to a score after the reduction and is not among them."""
         shifts, gains, tone = self._variants()
