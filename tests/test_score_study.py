@@ -181,13 +181,31 @@ def test_values_of_a_target_are_the_scores_the_refining_engine_gives(tmp_path, r
     assert np.array_equal(np.bincount(data["kind"]), [3, 250, 125])
     truth = np.flatnonzero(data["kind"] == 2)[62]  # the cell's centre: the truth itself
     assert np.allclose(data["poses"][truth], [x, y, yaw]) and data["adds_m"][truth] < 1e-6
-    assert data["adds_m"][0] > 0.02 and data["adds_m"][2] < 0.01
+    assert data["adds_m"][0] > 0.02 and data["adds_m"][2] < 0.01 and data["image_scale"] == 1.0
     fine = engine.scoring(load_rgb(im.rgb), im.camera, table, resting).refining()
     want = fine.score(tuple(data["poses"].T))
     got = study.reduce_values(data["values"], data["lens"], ["top0.5"])["top0.5"]
     assert np.isfinite(want).sum() > 300
     assert np.array_equal(np.isinf(got), np.isinf(want))
     assert np.allclose(got[np.isfinite(want)], want[np.isfinite(want)], rtol=0, atol=1e-6)
+
+
+def _write_values(folder, key, vals, adds, poses=None):
+    """A made-up `values` file: one pose per array of values (the last one the truth's cell)."""
+    study = load_tool("score_study")
+    folder.mkdir(parents=True, exist_ok=True)
+    n = len(vals)
+    np.savez(
+        folder / study.values_file(key),
+        key=np.array(key),
+        obj_id=np.int64(1),
+        visib_fract=np.float64(0.35),
+        poses=np.zeros((n, 3)) if poses is None else poses,
+        kind=np.array([0] * (n - 1) + [2], np.int8),
+        adds_m=np.array(adds),
+        lens=np.array([len(v) for v in vals]),
+        values=np.concatenate(vals).astype(np.float32),
+    )
 
 
 def test_reductions_pair_each_pick_with_the_base(tmp_path, capsys):
@@ -199,17 +217,7 @@ def test_reductions_pair_each_pick_with_the_base(tmp_path, capsys):
     look_alike = np.full(100, 0.45) + rng.normal(0, 0.01, 100)
     truth = np.concatenate([np.full(35, 0.9), np.full(65, 0.0)])  # 35 % visible: 0.63 at top-0.5, 0.315 as a plain mean
     for key, vals, adds in (((1, 1, 0), [look_alike, truth], [0.2, 0.0]), ((1, 2, 0), [truth, look_alike], [0.0, 0.2])):
-        np.savez(
-            tmp_path / study.values_file(key),
-            key=np.array(key),
-            obj_id=np.int64(1),
-            visib_fract=np.float64(0.35),
-            poses=np.zeros((2, 3)),
-            kind=np.array([0, 2], np.int8),
-            adds_m=np.array(adds),
-            lens=np.array([100, 100]),
-            values=np.concatenate(vals).astype(np.float32),
-        )
+        _write_values(tmp_path, key, vals, adds)
     assert study.main(["reductions", str(tmp_path)]) == 0
     out = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[2:]}
     assert "+[] -[]" in out["top0.5"] and "100.00" in out["top0.5"]
@@ -218,6 +226,28 @@ def test_reductions_pair_each_pick_with_the_base(tmp_path, capsys):
     assert study.main(["reductions", str(tmp_path), "--base", "top0.4"]) == 1
     err = capsys.readouterr().err
     assert "no values_*.npz" in err and "--base top0.4: not a reduction" in err
+
+
+def test_blend_weighs_the_second_scales_top_half_means_and_pairs_with_the_first(tmp_path, capsys):
+    """`blend` on one made-up target: at the first scale a look-alike's values (0.6) beat the truth's (0.5),
+    at the second the truth's (0.9) beat the look-alike's (0.1). Weight 0 is the first scale alone (the
+    look-alike); (1 - w) a + w b with w = 0.1 still picks it (0.55 > 0.54), w = 0.25 the truth (0.6 > 0.475)."""
+    study = load_tool("score_study")
+    key = (1, 3, 0)
+    _write_values(tmp_path / "full", key, [np.full(40, 0.6), np.full(40, 0.5)], [0.2, 0.0])
+    _write_values(tmp_path / "half", key, [np.full(10, 0.1), np.full(10, 0.9)], [0.2, 0.0])
+    args = ["blend", str(tmp_path / "full"), str(tmp_path / "half"), "--weights", "0.1", "0.25"]
+    assert study.main(args) == 0
+    out = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[2:]}
+    assert "+[] -[]" in out["w0"] and " 0.00 " in out["w0"]  # the look-alike, 20 cm away: AUC 0
+    assert "+[] -[]" in out["w0.1"]
+    assert "+[(1, 3, 0)] -[]" in out["w0.25"] and "100.00" in out["w0.25"]
+    # the second folder must hold the same target at the same poses
+    _write_values(tmp_path / "moved", key, [np.full(10, 0.1), np.full(10, 0.9)], [0.2, 0.0], poses=np.ones((2, 3)))
+    assert study.main(["blend", str(tmp_path / "full"), str(tmp_path / "moved")]) == 1
+    assert study.main(["blend", str(tmp_path / "full"), str(tmp_path / "none")]) == 1
+    err = capsys.readouterr().err.splitlines()
+    assert "other poses than" in err[0] and "missing (both folders need the same targets)" in err[1]
 
 
 @pytest.mark.parametrize("command", ["values", "rescore"])

@@ -11,6 +11,8 @@ then re-score them under every candidate score (issue 17's development protocol)
     python tools/score_study.py summary STUDY.json [--base SCORE]
     python tools/score_study.py values POOL.json --out VALUES/ [--score centred-direction] [--peaks 3]
     python tools/score_study.py reductions VALUES/ [--base top0.5] [--verbose]
+    python tools/score_study.py values POOL.json --out VALUES_HALF/ --image-scale 0.5
+    python tools/score_study.py blend VALUES/ VALUES_HALF/ [--weights 0.25 0.5] [--verbose]
 
 `collect` runs, per target (thesis protocol: height, roll and pitch from the ground truth), the
 exact (pruned) search of the default region on a coarse grid under a score (`--score`, the thesis's
@@ -36,7 +38,9 @@ for ranking variants; the frozen score is then checked with full searches (`perc
 pose's feature-point values under one score below the grid (ScoringService.point_values: the numbers
 whose top-α mean is its score) and its ADD-S, a file per target. `reductions` then tries other ways of
 reducing a pose's values to its score (REDUCTIONS: top-α for several α, floors, an adaptive α, shrink)
-on those files, without rendering anything again, and pairs each with the top-0.5 mean.
+on those files, without rendering anything again, and pairs each with the top-0.5 mean. `blend` pairs
+one folder's top-0.5 means with their blend with another folder's, the same poses valued at another photo
+scale (`values --image-scale 0.5`: conv1's 11 x 11 windows then see 22 x 22 pixels of the photo).
 """
 
 from __future__ import annotations
@@ -377,7 +381,9 @@ def values(args: argparse.Namespace) -> None:
         im, tg = by_key[tuple(row["key"])]
         if tg.obj_id not in engines:
             mesh = load_mesh(sel.model_paths[tg.obj_id])
-            cfg = EngineConfig(search="pruned", refine=False, score=args.score, alpha=0.5, cpu_threads=1)
+            cfg = EngineConfig(
+                search="pruned", refine=False, score=args.score, alpha=0.5, cpu_threads=1, image_scale=args.image_scale
+            )
             points = pose_error.subsample_points(np.asarray(mesh.vertices_m))
             engines[tg.obj_id] = (Engine(mesh, weights, "cpu", cfg), points)
         data = values_target(*engines[tg.obj_id], im, tg, row, tables, args.peaks)
@@ -413,6 +419,7 @@ def values_target(engine: Engine, points: np.ndarray, im, tg, row: dict, tables,
         "adds_m": adds,
         "lens": np.array([len(v) for v in vals], dtype=np.int64),
         "values": np.concatenate([np.zeros(0, np.float32), *vals]),
+        "image_scale": np.float64(engine.config.image_scale),
     }
 
 
@@ -466,21 +473,56 @@ def reduce_values(values: np.ndarray, lens: np.ndarray, names) -> dict[str, np.n
     return out
 
 
+def _values_files(folder: Path) -> list[Path]:
+    files = sorted(Path(folder).glob("values_*.npz"))
+    if not files:
+        raise PerchError(f"{folder}: no values_*.npz (score_study.py values writes them)")
+    return files
+
+
 def reductions(args: argparse.Namespace) -> None:
     """Each reduction's pick per target (the best of all its poses: every peak refined), paired with the base."""
-    files = sorted(Path(args.dir).glob("values_*.npz"))
-    if not files:
-        raise PerchError(f"{args.dir}: no values_*.npz (score_study.py values writes them)")
+    files = _values_files(args.dir)
     if args.base not in REDUCTIONS:
         raise PerchError(f"--base {args.base}: not a reduction ({', '.join(REDUCTIONS)})")
     names = [args.base, *(n for n in REDUCTIONS if n != args.base)]
+    targets = []
+    for f in files:
+        z = np.load(f)
+        targets.append((z, reduce_values(z["values"], z["lens"], names)))
+    _report_picks(targets, names, "reduction", args.verbose)
+
+
+def blend(args: argparse.Namespace) -> None:
+    """Each weight w's pick per target under (1 - w) top-0.5(values of `dir`) + w top-0.5(values of `other`),
+    the same poses valued at two photo scales (values --image-scale), paired with w = 0 (`dir` alone)."""
+    files = _values_files(args.dir)
+    weights = {f"w{w:g}": w for w in (0.0, *args.weights)}
+    names = list(weights)
+    targets = []
+    for f in files:
+        z, path = np.load(f), Path(args.other) / f.name
+        if not path.is_file():
+            raise PerchError(f"{path}: missing (both folders need the same targets)")
+        o = np.load(path)
+        if not np.array_equal(z["poses"], o["poses"]):
+            raise PerchError(f"{path}: other poses than {f} (both folders need the same pool)")
+        a = reduce_values(z["values"], z["lens"], ["top0.5"])["top0.5"]
+        b = reduce_values(o["values"], o["lens"], ["top0.5"])["top0.5"]
+        with np.errstate(invalid="ignore"):  # -inf (no points at one scale) stays -inf
+            targets.append((z, {n: (1 - w) * a + w * b if w else a for n, w in weights.items()}))
+    _report_picks(targets, names, "blend", args.verbose)
+
+
+def _report_picks(targets: list[tuple], names: list[str], what: str, verbose: bool) -> None:
+    """Per way of scoring (names[0] the base), the ADD-S of each target's best pose (z["poses"] scored as
+    scores[name]), AUC and < 2 cm paired with the base, by visibility, and the median margin."""
+    base = names[0]
     results: dict[str, list[dict]] = {n: [] for n in names}
     margins: dict[str, list[float]] = {n: [] for n in names}
     visib = []
-    for f in files:
-        z = np.load(f)
+    for z, scores in targets:
         adds, right = z["adds_m"], z["adds_m"] < 0.02
-        scores = reduce_values(z["values"], z["lens"], names)
         visib.append(float(z["visib_fract"]))
         both = right.any() and (~right).any()  # a margin needs a right and a wrong pose
         for n in names:
@@ -488,13 +530,13 @@ def reductions(args: argparse.Namespace) -> None:
             results[n].append({"key": z["key"].tolist(), "adds_m": e, "adds_grid_m": e})
             # the best right pose's score less the best wrong one's
             margins[n].append(float(scores[n][right].max() - scores[n][~right].max()) if both else float("nan"))
-    report = summarise(results, args.base)
+    report = summarise(results, base)
     low = np.array(visib) < 0.5
-    print(f"{len(files)} targets, {int(low.sum())} less than half visible; every pose of each scored (all peaks "
-          "refined), paired with " + args.base)  # fmt: skip
-    print(f"{'reduction':14s} {'AUC':>6s} {'dAUC [95% CI]':>22s} {'<2cm %':>7s} {'<2cm: vis<0.5':>13s} {'vis>=0.5':>9s}"
+    print(f"{len(targets)} targets, {int(low.sum())} less than half visible; every pose of each scored (all peaks "
+          "refined), paired with " + base)  # fmt: skip
+    print(f"{what:14s} {'AUC':>6s} {'dAUC [95% CI]':>22s} {'<2cm %':>7s} {'<2cm: vis<0.5':>13s} {'vis>=0.5':>9s}"
           f" {'median margin':>13s}  gained / lost against the base")  # fmt: skip
-    e0 = np.array([o["adds_m"] for o in results[args.base]])
+    e0 = np.array([o["adds_m"] for o in results[base]])
     for n in names:
         row, e = report["table"][n], np.array([o["adds_m"] for o in results[n]])
         keys = [tuple(o["key"]) for o in results[n]]
@@ -504,10 +546,10 @@ def reductions(args: argparse.Namespace) -> None:
         print(f"{n:14s} {row['auc']:6.2f} {row['d_auc']:+7.2f} [{row['d_auc_ci'][0]:+6.2f},{row['d_auc_ci'][1]:+6.2f}]"
               f" {row['below_2cm']:7.2f} {lo_hit:>6d} of {int(low.sum()):<4d} {hi_hit:>3d} of {int((~low).sum()):<3d}"
               f" {np.nanmedian(margins[n]):+13.3f}  +{gained} -{lost}")  # fmt: skip
-    if args.verbose:
-        for i in range(len(files)):
+    if verbose:
+        for i in range(len(targets)):
             cells = " ".join(f"{n} {100 * results[n][i]['adds_m']:.1f} cm ({margins[n][i]:+.3f})" for n in names)
-            print(f"  {tuple(results[args.base][i]['key'])} visible {visib[i]:.2f}: {cells}")
+            print(f"  {tuple(results[base][i]['key'])} visible {visib[i]:.2f}: {cells}")
 
 
 def _print_score_line(spec: str, out: list[dict], t0: float) -> None:
@@ -615,10 +657,18 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--weights", help="feature weights (default: the pool's run's)")
     v.add_argument("--peaks", type=int, default=3, help="distinct far pool peaks refined like the truth (default 3)")
     v.add_argument("--limit", type=int)
+    v.add_argument("--image-scale", type=float, default=1.0, help="photo scale the poses are valued at (default 1)")
     rd = sub.add_parser("reductions", help="each reduction of the stored values to a score, paired with the base")
     rd.add_argument("dir", type=Path, help="the folder `values` wrote")
     rd.add_argument("--base", default="top0.5", help="the reduction paired against (default top0.5, every score's)")
     rd.add_argument("--verbose", action="store_true", help="a line per target")
+    b = sub.add_parser("blend", help="two folders of values (two photo scales) blended, paired with the first alone")
+    b.add_argument("dir", type=Path, help="the folder `values` wrote (the base: weight 0)")
+    b.add_argument("other", type=Path, help="the same pool's values at another scale (values --image-scale)")
+    b.add_argument(
+        "--weights", type=float, nargs="+", default=[0.25, 0.5], help="weights of `other` (default 0.25, 0.5)"
+    )
+    b.add_argument("--verbose", action="store_true", help="a line per target")
     m = sub.add_parser("merge", help="one pool from several collected under different scores")
     m.add_argument("pools", type=Path, nargs="+")
     m.add_argument("--out", type=Path, required=True)
@@ -628,7 +678,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         commands = {"collect": collect, "from-run": from_run, "merge": merge, "rescore": rescore, "summary": show,
-                    "values": values, "reductions": reductions}  # fmt: skip
+                    "values": values, "reductions": reductions, "blend": blend}  # fmt: skip
         commands[args.cmd](args)
     except PerchError as e:
         print(f"error: {e}", file=sys.stderr)
