@@ -231,19 +231,21 @@ def test_reductions_pair_each_pick_with_the_base(tmp_path, capsys):
 def test_blend_weighs_the_second_scales_top_half_means_and_pairs_with_the_first(tmp_path, capsys):
     """`blend` on one made-up target: at the first scale a look-alike's values (0.6) beat the truth's (0.5),
     at the second the truth's (0.9) beat the look-alike's (0.1). Weight 0 is the first scale alone (the
-    look-alike); (1 - w) a + w b with w = 0.1 still picks it (0.55 > 0.54), w = 0.25 the truth (0.6 > 0.475)."""
+    look-alike); (1 - w) a + w b with w = 0.1 still picks it (0.55 > 0.54), w = 0.25 the truth (0.6 > 0.475).
+    A third pose has no points at the first scale: it never wins, not even at w = 1 (0 x -inf is nan)."""
     study = load_tool("score_study")
     key = (1, 3, 0)
-    _write_values(tmp_path / "full", key, [np.full(40, 0.6), np.full(40, 0.5)], [0.2, 0.0])
-    _write_values(tmp_path / "half", key, [np.full(10, 0.1), np.full(10, 0.9)], [0.2, 0.0])
-    args = ["blend", str(tmp_path / "full"), str(tmp_path / "half"), "--weights", "0.1", "0.25"]
+    _write_values(tmp_path / "full", key, [np.full(40, 0.6), np.zeros(0), np.full(40, 0.5)], [0.2, 0.3, 0.0])
+    _write_values(tmp_path / "half", key, [np.full(10, 0.1), np.full(10, 1.0), np.full(10, 0.9)], [0.2, 0.3, 0.0])
+    args = ["blend", str(tmp_path / "full"), str(tmp_path / "half"), "--weights", "0.1", "0.25", "1"]
     assert study.main(args) == 0
     out = {line.split()[0]: line for line in capsys.readouterr().out.splitlines()[2:]}
     assert "+[] -[]" in out["w0"] and " 0.00 " in out["w0"]  # the look-alike, 20 cm away: AUC 0
     assert "+[] -[]" in out["w0.1"]
     assert "+[(1, 3, 0)] -[]" in out["w0.25"] and "100.00" in out["w0.25"]
+    assert "+[(1, 3, 0)] -[]" in out["w1"]
     # the second folder must hold the same target at the same poses
-    _write_values(tmp_path / "moved", key, [np.full(10, 0.1), np.full(10, 0.9)], [0.2, 0.0], poses=np.ones((2, 3)))
+    _write_values(tmp_path / "moved", key, [np.full(10, 0.1)] * 3, [0.2, 0.3, 0.0], poses=np.ones((3, 3)))
     assert study.main(["blend", str(tmp_path / "full"), str(tmp_path / "moved")]) == 1
     assert study.main(["blend", str(tmp_path / "full"), str(tmp_path / "none")]) == 1
     err = capsys.readouterr().err.splitlines()

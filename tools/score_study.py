@@ -509,9 +509,16 @@ def blend(args: argparse.Namespace) -> None:
             raise PerchError(f"{path}: other poses than {f} (both folders need the same pool)")
         a = reduce_values(z["values"], z["lens"], ["top0.5"])["top0.5"]
         b = reduce_values(o["values"], o["lens"], ["top0.5"])["top0.5"]
-        with np.errstate(invalid="ignore"):  # -inf (no points at one scale) stays -inf
-            targets.append((z, {n: (1 - w) * a + w * b if w else a for n, w in weights.items()}))
+        targets.append((z, {n: _blend(a, b, w) if w else a for n, w in weights.items()}))
     _report_picks(targets, names, "blend", args.verbose)
+
+
+def _blend(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
+    """(1 - w) a + w b; -inf where a pose has no points at either scale (0 x -inf would be nan at w = 1)."""
+    out = np.full(len(a), -np.inf)
+    ok = np.isfinite(a) & np.isfinite(b)
+    out[ok] = (1 - w) * a[ok] + w * b[ok]
+    return out
 
 
 def _report_picks(targets: list[tuple], names: list[str], what: str, verbose: bool) -> None:
