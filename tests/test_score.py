@@ -163,3 +163,31 @@ def test_point_values_reduce_to_the_scores_the_engine_computes(random_weights):
     assert np.array_equal(n, lens)
     assert np.allclose(ref[np.isfinite(scores)], scores[np.isfinite(scores)], rtol=0, atol=1e-6)
     assert np.all(np.isneginf(ref[~np.isfinite(scores)]))
+
+
+def test_point_pixels_lie_on_the_pose_rendered_whole(random_weights):
+    """point_values(pixels=True): the same values, each with its photo pixel, on the feature grid (11 x 11
+    windows, stride 4: 5 + 4 g) and inside the pose's silhouette in a full-image rendering of that pose
+    (an independent path: Engine.render of the whole camera image, not the candidate's crop)."""
+    from perch_warp.demo import demo_scene
+    from perch_warp.engine import Engine, EngineConfig
+    from perch_warp.table import model_to_camera, pose_matrix
+
+    scene = demo_scene(seed=1)
+    engine = Engine(scene.mesh, random_weights, DEVICE, EngineConfig(score="centred"))
+    fine = engine.scoring(scene.image, scene.camera, scene.table, scene.resting).refining()
+    gx, gy, gyaw = scene.truth_xy_yaw
+    x, y, yaw = np.array([gx, gx + 0.03, 4.0]), np.array([gy, gy - 0.02, 4.0]), np.array([gyaw, gyaw + 1.0, 0.0])
+    plain = fine.point_values((x, y, yaw))
+    with_uv = fine.point_values((x, y, yaw), pixels=True)
+    R, t = model_to_camera(scene.table, scene.resting, x, y, yaw)
+    for i in range(3):
+        v, uv = with_uv[i]
+        assert np.array_equal(v, plain[i]) and uv.shape == (len(v), 2) and uv.dtype == np.int32
+        if i == 2:  # off the image: no points
+            assert len(v) == 0
+            continue
+        assert len(v) > 50 and np.all((uv - 5) % 4 == 0)
+        _, mask = engine.render(scene.camera, pose_matrix(R[i], t[i]))
+        assert np.all((uv[:, 0] >= 0) & (uv[:, 0] < scene.camera.width) & (uv[:, 1] >= 0))
+        assert mask[uv[:, 1], uv[:, 0]].mean() > 0.98  # the crop's and the whole image's rays agree

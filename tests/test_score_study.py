@@ -260,3 +260,94 @@ def test_a_missing_pool_is_named_in_one_line(tmp_path, capsys, command):
     err = capsys.readouterr().err
     assert err.startswith("error: ") and "nope.json: not found" in err and err.count("\n") == 1
     assert not (tmp_path / "v").exists()
+
+
+def test_hidden_top_mean_is_its_definition_and_never_falls_when_a_visible_value_rises():
+    """occlusion's reduction: the best k visible values over k, k = ceil(0.5 max(V, ceil(beta N)))."""
+    study = load_tool("score_study")
+    v = np.array([0.9, 0.8, 0.1, 0.5, 0.7, 0.2, 0.0, 0.3])
+    hidden = np.array([False, True, False, True, False, True, True, True])  # visible: 0.9, 0.1, 0.7
+    assert study.hidden_top_mean(v, hidden, 0.0) == pytest.approx((0.9 + 0.7) / 2)  # k = ceil(1.5) = 2
+    assert study.hidden_top_mean(v, hidden, 0.5) == pytest.approx((0.9 + 0.7) / 2)  # max(3, 4) -> k = 2
+    assert study.hidden_top_mean(v, hidden, 1.0) == pytest.approx((0.9 + 0.7 + 0.1) / 4)  # k = 4 > V: missing = 0
+    assert study.hidden_top_mean(v, np.zeros(8, bool), 0.25) == pytest.approx((0.9 + 0.8 + 0.7 + 0.5) / 4)
+    assert study.hidden_top_mean(v, np.ones(8, bool), 0.25) == -math.inf
+    rng = np.random.default_rng(1)
+    for _ in range(50):
+        n = int(rng.integers(1, 40))
+        w, hid, beta = rng.uniform(-0.2, 1, n), rng.random(n) < 0.6, float(rng.choice([0, 0.25, 0.5, 1]))
+        before = study.hidden_top_mean(w, hid, beta)
+        w[rng.integers(n)] += rng.uniform(0, 0.5)
+        assert study.hidden_top_mean(w, hid, beta) >= before - 1e-12
+
+
+def test_hidden_points_are_under_a_nearer_occluders_silhouette_only():
+    study = load_tool("score_study")
+    mask = np.zeros((48, 64), bool)
+    mask[10:20, 30:40] = True
+    uv = np.array([[35, 15], [5, 5], [39, 19], [40, 15], [-3, 15], [35, 60]])  # in, out, corner in, edge out, off
+    assert study.hidden_points(uv, 1.0, [(mask, 0.8)]).tolist() == [True, False, True, False, False, False]
+    assert not study.hidden_points(uv, 1.0, [(mask, 1.2)]).any()  # the occluder stands behind the pose
+    assert not study.hidden_points(uv, 1.0, []).any()
+
+
+def test_occlusion_drops_what_another_targets_answer_hides(tmp_path, capsys):
+    """`occlusion` on a made-up target of the tiny dataset (image 2's box, (1, 2, 1)), hidden behind the
+    run's answer for the cylinder (1, 2, 0): its truth shows 20 of 100 points (0.9 each), the other 80 lie
+    under the cylinder's rendered silhouette (0.0); a look-alike shows 40 points of 0.45 in the open; a
+    pose farther back shows 5 points (1.0) beside the cylinder and hides 95. The top-0.5 mean of all
+    points takes the look-alike (0.36 < 0.45); dropping the hidden points with beta 0 takes the pose
+    hiding behind the cylinder (its 5 points: 1.0); beta 0.25 counts at least 13 points (the hider:
+    5/13 = 0.38) and takes the truth (0.9); beta 1 counts 50 again (the look-alike)."""
+    from perch_warp.eval.plots import silhouette
+    from perch_warp.mesh import load_mesh
+
+    study = load_tool("score_study")
+    root = write_tiny_dataset(tmp_path / "ds")
+    run_eval(root, tmp_path / "run", FakeEstimator())
+    sel = bop.select_targets(bop.open_dataset(root, "test", None))
+    im = next(i for i in sel.images if i.im_id == 2)
+    (_, obj, R, t), *_ = study.run_answers(tmp_path / "run", sel)[(1, 2)]
+    mesh = load_mesh(sel.model_paths[obj])
+    under = np.argwhere(silhouette(im.camera, np.asarray(mesh.vertices_m), np.asarray(mesh.faces), R, t))[:, ::-1]
+    assert obj == 2 and len(under) > 20
+    d = float(np.linalg.norm(t))
+    free = np.array([[2, 2], [3, 40], [60, 2]])  # corners the cylinder does not reach
+    rng = np.random.default_rng(0)
+    pick = lambda px, n: px[rng.integers(len(px), size=n)]  # noqa: E731
+    poses = [  # (values, pixels, distance from the camera, ADD-S)
+        (np.full(40, 0.45), pick(free, 40), d + 0.2, 0.2),
+        (np.r_[np.full(5, 1.0), np.zeros(95)], np.r_[pick(free, 5), pick(under, 95)], d + 0.1, 0.3),
+        (np.r_[np.full(20, 0.9), np.zeros(80)], np.r_[pick(free, 20), pick(under, 80)], d + 0.05, 0.0),
+    ]
+    folder = tmp_path / "values"
+    folder.mkdir()
+    np.savez(
+        folder / study.values_file((1, 2, 1)),
+        key=np.array([1, 2, 1]),
+        obj_id=np.int64(1),
+        visib_fract=np.float64(0.2),
+        poses=np.zeros((3, 3)),
+        kind=np.array([0, 0, 2], np.int8),
+        adds_m=np.array([p[3] for p in poses]),
+        lens=np.array([len(p[0]) for p in poses]),
+        values=np.concatenate([p[0] for p in poses]).astype(np.float32),
+        uv=np.concatenate([p[1] for p in poses]).astype(np.int16),
+        dist_m=np.array([p[2] for p in poses]),
+        run=np.str_(str(tmp_path / "run")),
+    )
+    assert study.main(["occlusion", str(folder), "--verbose"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    out = {line.split()[0]: line for line in lines[2:-1]}
+    assert "top0.5 20.0 cm" in lines[-1] and "hidden0 30.0 cm" in lines[-1] and "hidden0.25 0.0 cm" in lines[-1]
+    assert "hidden1 20.0 cm" in lines[-1]
+    assert "+[] -[]" in out["top0.5"] and " 0.00 " in out["top0.5"]  # the look-alike, 20 cm off
+    assert "+[] -[]" in out["hidden0"]  # the hider, 30 cm off
+    assert "+[(1, 2, 1)] -[]" in out["hidden0.25"] and "100.00" in out["hidden0.25"]
+    assert "+[] -[]" in out["hidden1"]
+    # the truth's own silhouettes hide nothing of this made-up target's points the same way, but they run
+    assert study.main(["occlusion", str(folder), "--occluders", "truth", "--betas", "0.25"]) == 0
+    capsys.readouterr()
+    _write_values(tmp_path / "plain", (1, 2, 1), [np.full(4, 0.5)], [0.0])  # values without --pixels
+    assert study.main(["occlusion", str(tmp_path / "plain")]) == 1
+    assert "write the values with `values --pixels`" in capsys.readouterr().err

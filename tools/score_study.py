@@ -59,7 +59,7 @@ from perch_warp import bop, pose_error
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
 from perch_warp.eval import journal
-from perch_warp.eval.plots import heatmap_path
+from perch_warp.eval.plots import heatmap_path, silhouette
 from perch_warp.features import load_feature_weights
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
@@ -370,6 +370,8 @@ def values(args: argparse.Namespace) -> None:
     """Every pooled pose's feature-point values under one score, a file per target (resumable)."""
     sel, by_key, rows, weights = _open_pool(args.pool, args.weights, args.limit)
     tables = bop.TableCache("auto")
+    run = Path(json.loads(Path(args.pool).read_text()).get("run") or "")
+    answers = run_answers(run, sel) if args.around else None
     args.out.mkdir(parents=True, exist_ok=True)
     engines: dict[int, tuple[Engine, np.ndarray]] = {}
     t_all = time.perf_counter()
@@ -386,7 +388,10 @@ def values(args: argparse.Namespace) -> None:
             )
             points = pose_error.subsample_points(np.asarray(mesh.vertices_m))
             engines[tg.obj_id] = (Engine(mesh, weights, "cpu", cfg), points)
-        data = values_target(*engines[tg.obj_id], im, tg, row, tables, args.peaks)
+        around = _poses_around(answers, tables.get(im)[0], tg) if answers is not None else None
+        data = values_target(*engines[tg.obj_id], im, tg, row, tables, args.peaks, args.pixels or args.around, around)
+        if args.pixels or args.around:
+            data["run"] = np.str_(str(run))
         atomic_write(path, lambda f, data=data: np.savez_compressed(f, **data))
         print(f"{row['key']} obj {tg.obj_id}: {len(data['adds_m'])} poses, {time.perf_counter() - t:.1f} s",
               file=sys.stderr, flush=True)  # fmt: skip
@@ -397,20 +402,27 @@ def values_file(key) -> str:
     return "values_" + "_".join(str(k) for k in key) + ".npz"
 
 
-def values_target(engine: Engine, points: np.ndarray, im, tg, row: dict, tables, peaks: int) -> dict:
-    """One target's poses (the pool, each far peak's cell and the truth's cell: `kind` 0, 1, 2), their
-    ADD-S (m) and every pose's feature-point values under the engine's score below the grid (the
-    refinement's: the grid's shift tolerance off), concatenated (`lens` per pose)."""
+def values_target(
+    engine: Engine, points: np.ndarray, im, tg, row: dict, tables, peaks: int, pixels: bool = False, around=None
+) -> dict:
+    """One target's poses (the pool, each far peak's cell and the truth's cell: `kind` 0, 1, 2, then
+    `around`'s poses if given: kind 3), their ADD-S (m) and every pose's feature-point values under the
+    engine's score below the grid (the refinement's: the grid's shift tolerance off), concatenated
+    (`lens` per pose). With `pixels`, also each point's photo pixel (`uv`) and each pose's model origin's
+    distance from the camera (`dist_m`), what `occlusion` needs to tell the points another object hides."""
     table, _ = tables.get(im)
     resting, *_ = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
     pool, cells, truth = _study_poses(row, peaks)
-    poses = np.concatenate([pool, *cells, truth])
-    kind = np.repeat([0, 1, 2], [len(pool), sum(len(c) for c in cells), len(truth)]).astype(np.int8)
+    extra = np.zeros((0, 3)) if around is None else np.asarray(around, dtype=np.float64).reshape(-1, 3)
+    poses = np.concatenate([pool, *cells, truth, extra])
+    kind = np.repeat([0, 1, 2, 3], [len(pool), sum(len(c) for c in cells), len(truth), len(extra)]).astype(np.int8)
     service = engine.scoring(load_rgb(im.rgb), im.camera, table, resting).refining()
-    vals = service.point_values((poses[:, 0], poses[:, 1], poses[:, 2]))
+    vals = service.point_values((poses[:, 0], poses[:, 1], poses[:, 2]), pixels=pixels)
+    uv = [p[1] for p in vals] if pixels else None
+    vals = [p[0] for p in vals] if pixels else vals
     R, t = model_to_camera(table, resting, *poses.T)
     adds = np.array([pose_error.adi(R[i], t[i], tg.R_gt, tg.t_gt_m, points) for i in range(len(poses))])
-    return {
+    data = {
         "key": np.asarray(row["key"]),
         "obj_id": np.int64(tg.obj_id),
         "visib_fract": np.float64(np.nan if tg.visib_fract is None else tg.visib_fract),
@@ -421,6 +433,42 @@ def values_target(engine: Engine, points: np.ndarray, im, tg, row: dict, tables,
         "values": np.concatenate([np.zeros(0, np.float32), *vals]),
         "image_scale": np.float64(engine.config.image_scale),
     }
+    if pixels:
+        data["uv"] = np.concatenate([np.zeros((0, 2), np.int32), *uv]).astype(np.int16)
+        data["dist_m"] = np.linalg.norm(t, axis=1)
+    return data
+
+
+def run_answers(run: Path, sel) -> dict[tuple[int, int], list[tuple[int, int, np.ndarray, np.ndarray]]]:
+    """A finished eval run's answers by image (scene, im): (inst, obj_id, R_m2c, t_m2c_m) per target."""
+    if not (Path(run) / journal.JOURNAL_FILE).is_file():
+        raise PerchError(f"{run}: no {journal.JOURNAL_FILE} (the pool's run must be a perch_warp eval output folder)")
+    done, _, _ = journal.load_state(Path(run), sel)
+    out: dict[tuple[int, int], list] = {}
+    for (scene, im, inst), d in sorted(done.items()):
+        out.setdefault((scene, im), []).append((inst, d.obj_id, np.asarray(d.R).reshape(3, 3), np.asarray(d.t_m)))
+    return out
+
+
+AROUND_M = np.arange(-0.12, 0.1201, 0.03)  # 9 x 9 places 3 cm apart
+AROUND_YAW = np.radians(np.arange(0.0, 360.0, 45.0))
+
+
+def _poses_around(answers: dict, table, tg) -> np.ndarray:
+    """Table-frame poses (x_m, y_m, yaw_rad) around each OTHER target's answer in the same image, only
+    those whose model origin is farther from the camera than that answer's: where a score that drops the
+    points the answer hides might newly favour a pose mostly hidden behind it."""
+    resting, *_ = decompose_on_table(table, tg.R_gt, tg.t_gt_m)
+    dx, dy, yaw = (a.ravel() for a in np.meshgrid(AROUND_M, AROUND_M, AROUND_YAW, indexing="ij"))
+    out = [np.zeros((0, 3))]
+    for inst, _, R, t in answers.get((tg.scene_id, tg.im_id), []):
+        if inst == tg.inst:
+            continue
+        _, x, y, _ = decompose_on_table(table, R, t)
+        poses = np.stack([x + dx, y + dy, yaw], 1)
+        _, tr = model_to_camera(table, resting, *poses.T)
+        out.append(poses[np.linalg.norm(tr, axis=1) > np.linalg.norm(t)])
+    return np.concatenate(out)
 
 
 def _top(alpha: float):
@@ -519,6 +567,100 @@ def _blend(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
     ok = np.isfinite(a) & np.isfinite(b)
     out[ok] = (1 - w) * a[ok] + w * b[ok]
     return out
+
+
+def hidden_top_mean(values: np.ndarray, hidden: np.ndarray, beta: float, alpha: float = 0.5) -> float:
+    """A pose's score when the points another, nearer object covers are dropped (`hidden`, bool per point):
+    the sum of its best k visible values over k, k = alpha_count(alpha, max(V, ceil(beta N))) for V
+    visible of N points (-inf with none visible). beta > 0 keeps a pose that hides almost wholly behind
+    another object from winning on a few points: with V < beta N each missing point counts as 0. It
+    never falls when a visible value rises, so a silhouette bound built the same way would stay an
+    upper bound."""
+    vis = np.sort(np.asarray(values, dtype=np.float64)[~np.asarray(hidden, dtype=bool)])[::-1]
+    if not len(vis):
+        return -math.inf
+    k = alpha_count(alpha, max(len(vis), math.ceil(beta * len(values))))
+    return float(vis[:k].sum() / k)
+
+
+def hidden_points(uv: np.ndarray, dist_m: float, occluders: list[tuple[np.ndarray, float]]) -> np.ndarray:
+    """Which of a pose's points (photo pixels uv (n, 2): column, row) lie under the silhouette (H, W) of
+    an occluder whose model origin is nearer the camera than the pose's (dist_m): the comparison of
+    centres perch_warp/joint.py makes (objects standing on a table rarely interleave)."""
+    out = np.zeros(len(uv), dtype=bool)
+    for mask, d in occluders:
+        if d >= dist_m:
+            continue
+        h, w = mask.shape
+        u, v = uv[:, 0].astype(np.int64), uv[:, 1].astype(np.int64)
+        inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        out[inside] |= mask[v[inside], u[inside]]
+    return out
+
+
+def occlusion(args: argparse.Namespace) -> None:
+    """Each target's pick when the points hidden by the other targets' answers in the pool's run (or, with
+    --occluders truth, by every other object at its true pose: an upper bound) are dropped, paired with
+    the top-0.5 mean of all points."""
+    files = _values_files(args.dir)
+    names = ["top0.5", *(f"hidden{b:g}" for b in args.betas)]
+    runs: dict[str, tuple] = {}
+    targets = []
+    for f in files:
+        z = dict(np.load(f))
+        if "uv" not in z:
+            raise PerchError(f"{f}: no point pixels (write the values with `values --pixels`)")
+        run = str(z["run"])
+        if run not in runs:
+            runs[run] = _occluder_source(Path(run), args.occluders)
+        sel, by_key, placed = runs[run]
+        key = tuple(int(k) for k in z["key"])
+        im, _ = by_key[key]
+        occluders = [
+            (silhouette(im.camera, *_mesh_arrays(sel, obj), R, t), float(np.linalg.norm(t)))
+            for inst, obj, R, t in placed.get(key[:2], [])
+            if inst != key[2]
+        ]
+        off = np.concatenate([[0], np.cumsum(z["lens"])])
+        scores = reduce_values(z["values"], z["lens"], ["top0.5"])
+        for b in args.betas:
+            scores[f"hidden{b:g}"] = np.full(len(z["lens"]), -np.inf)
+        for i in np.flatnonzero(z["lens"]):
+            v, uv = z["values"][off[i] : off[i + 1]], z["uv"][off[i] : off[i + 1]]
+            hid = hidden_points(uv, float(z["dist_m"][i]), occluders)
+            for b in args.betas:
+                scores[f"hidden{b:g}"][i] = hidden_top_mean(v, hid, b)
+        targets.append((z, scores))
+    _report_picks(targets, names, f"occl. ({args.occluders})", args.verbose)
+
+
+_MESHES: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+
+
+def _mesh_arrays(sel, obj_id: int) -> tuple[np.ndarray, np.ndarray]:
+    """A model's vertices (metres, model frame) and faces, loaded once."""
+    path = str(sel.model_paths[obj_id])
+    if path not in _MESHES:
+        mesh = load_mesh(path)
+        _MESHES[path] = (np.asarray(mesh.vertices_m), np.asarray(mesh.faces))
+    return _MESHES[path]
+
+
+def _occluder_source(run: Path, which: str):
+    """The run's dataset selection (every instance with a mesh), its targets by key, and what may hide a
+    target, by image: the run's answers ("run") or every instance at its true pose ("truth")."""
+    cfg_path = run / journal.CONFIG_FILE
+    if not cfg_path.is_file():
+        raise PerchError(f"{cfg_path}: not found (the values' run must be a perch_warp eval output folder)")
+    cfg = json.loads(cfg_path.read_text())
+    sel = bop.select_targets(bop.open_dataset(cfg["dataset"], cfg.get("split", "test"), None))
+    by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
+    if which == "run":
+        return sel, by_key, run_answers(run, sel)
+    placed: dict[tuple[int, int], list] = {}
+    for im in sel.images:
+        placed[(im.scene_id, im.im_id)] = [(t.inst, t.obj_id, t.R_gt, t.t_gt_m) for t in im.targets]
+    return sel, by_key, placed
 
 
 def _report_picks(targets: list[tuple], names: list[str], what: str, verbose: bool) -> None:
@@ -665,6 +807,12 @@ def main(argv: list[str] | None = None) -> int:
     v.add_argument("--peaks", type=int, default=3, help="distinct far pool peaks refined like the truth (default 3)")
     v.add_argument("--limit", type=int)
     v.add_argument("--image-scale", type=float, default=1.0, help="photo scale the poses are valued at (default 1)")
+    v.add_argument("--pixels", action="store_true", help="keep each point's pixel and each pose's distance (occlusion)")
+    v.add_argument(
+        "--around",
+        action="store_true",
+        help="add poses around and behind the other targets' answers in the pool's run (implies --pixels)",
+    )
     rd = sub.add_parser("reductions", help="each reduction of the stored values to a score, paired with the base")
     rd.add_argument("dir", type=Path, help="the folder `values` wrote")
     rd.add_argument("--base", default="top0.5", help="the reduction paired against (default top0.5, every score's)")
@@ -676,6 +824,22 @@ def main(argv: list[str] | None = None) -> int:
         "--weights", type=float, nargs="+", default=[0.25, 0.5], help="weights of `other` (default 0.25, 0.5)"
     )
     b.add_argument("--verbose", action="store_true", help="a line per target")
+    oc = sub.add_parser("occlusion", help="picks when points the other targets' answers hide are dropped")
+    oc.add_argument("dir", type=Path, help="the folder `values --pixels` wrote")
+    oc.add_argument(
+        "--betas",
+        type=float,
+        nargs="+",
+        default=[0.0, 0.25, 0.5, 1.0],
+        help="floors of the counted share: k from max(visible, beta x all points) (default 0 0.25 0.5 1)",
+    )
+    oc.add_argument(
+        "--occluders",
+        choices=["run", "truth"],
+        default="run",
+        help="the other targets' answers in the pool's run (default), or every object's true pose",
+    )
+    oc.add_argument("--verbose", action="store_true", help="a line per target")
     m = sub.add_parser("merge", help="one pool from several collected under different scores")
     m.add_argument("pools", type=Path, nargs="+")
     m.add_argument("--out", type=Path, required=True)
@@ -685,7 +849,7 @@ def main(argv: list[str] | None = None) -> int:
     args = p.parse_args(argv)
     try:
         commands = {"collect": collect, "from-run": from_run, "merge": merge, "rescore": rescore, "summary": show,
-                    "values": values, "reductions": reductions, "blend": blend}  # fmt: skip
+                    "values": values, "reductions": reductions, "blend": blend, "occlusion": occlusion}  # fmt: skip
         commands[args.cmd](args)
     except PerchError as e:
         print(f"error: {e}", file=sys.stderr)

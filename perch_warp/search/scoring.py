@@ -374,13 +374,15 @@ class ScoringService:
         scorer = self.backends.scorer
         return scorer.shifts(self.terms.shift), scorer.gains(self.terms.exposure), tone_gains(self.terms.tone)
 
-    def point_values(self, poses) -> list[np.ndarray]:
+    def point_values(self, poses, pixels: bool = False) -> list:
         """Each pose's feature-point values, float32, one per point of its silhouette (empty where it shows
         none); poses as for score(): table-frame x_m, y_m, yaw_rad arrays or a PoseSource. They are the
         numbers whose top-α mean is its score, kept so that other reductions can be studied on them
         (tools/score_study.py values). Only for a score with one value per point: below the grid
         (`refining()`, no shift tolerance) and without the exposure or tone variants. A place's table
-        term (c.prior) is added to a score after the reduction and is not among them."""
+        term (c.prior) is added to a score after the reduction and is not among them. With `pixels`,
+        each pose's entry is (values, uv): uv (n, 2) int32 the points' photo pixels (column, row), so
+        that a study can tell which points another object hides."""
         shifts, gains, tone = self._variants()
         if shifts.shape[0] * gains.shape[0] * len(tone) != 1:
             raise PerchError(
@@ -389,28 +391,40 @@ class ScoringService:
             )
         poses = _as_source(poses)
         out = np.empty(poses.n, dtype=object)
-        out.fill(np.zeros(0, np.float32))  # poses that show no feature point keep it
+        none = np.zeros(0, np.float32)
+        for i in range(poses.n):  # poses that show no feature point keep it
+            out[i] = (none, np.zeros((0, 2), np.int32)) if pixels else none
         for idx in poses.chunks():
             c = self.setup(poses, idx)
             part = out[idx]  # a copy (fancy indexing), written back below
             sizes = c.boxes[c.live, 2].astype(np.int64) * c.boxes[c.live, 3]
-            work = functools.partial(self._values_batch, c, shifts, gains, tone)
+            work = functools.partial(self._values_batch, c, shifts, gains, tone, pixels=pixels)
             self._batched(work, c.live, sizes, part, SearchStats(), None)
             out[idx] = part
         return list(out)
 
     def _values_batch(
-        self, c: Candidates, shifts: wp.array, gains: wp.array, tone: np.ndarray, idx
+        self, c: Candidates, shifts: wp.array, gains: wp.array, tone: np.ndarray, idx, pixels: bool = False
     ) -> tuple[np.ndarray, dict[str, float]]:
-        """Candidates `idx`: their on-mask feature-point values on the host, one array each (an object
-        array, for _batched), and the seconds each stage took."""
+        """Candidates `idx`: their on-mask feature-point values on the host, one array each (with
+        `pixels`, (values, uv) each; an object array, for _batched), and the seconds each stage took."""
         laps: dict[str, float] = {}
         vals, pt_off = self._point_values(c, shifts, gains, tone, idx, laps)
         v, o = vals.numpy(), pt_off.numpy()
+        half, stride = self.backends.weights.kernel_size // 2, self.config.stride
         out = np.empty(len(idx), dtype=object)
-        for a in range(len(idx)):
+        for a, ci in enumerate(idx):
             x = v[o[a] : o[a + 1]]
-            out[a] = x[x > NOT_ON_MASK / 2].copy()
+            on = x > NOT_ON_MASK / 2
+            if not pixels:
+                out[a] = x[on].copy()
+                continue
+            # kernels/features.py PointLayout: the grid box's cells row by row, cell (gx, gy) at pixel
+            # (half + stride gx, half + stride gy)
+            gx0, gy0, gw, _ = (int(g) for g in c.gboxes[ci])
+            local = np.flatnonzero(on)
+            uv = np.stack([half + stride * (gx0 + local % gw), half + stride * (gy0 + local // gw)], 1)
+            out[a] = (x[on].copy(), uv.astype(np.int32))
         return out, laps
 
     def _bound_batch(self, c: Candidates, ceiling: wp.array, idx) -> tuple[np.ndarray, dict[str, float]]:
