@@ -351,3 +351,13 @@ def test_occlusion_drops_what_another_targets_answer_hides(tmp_path, capsys):
     _write_values(tmp_path / "plain", (1, 2, 1), [np.full(4, 0.5)], [0.0])  # values without --pixels
     assert study.main(["occlusion", str(tmp_path / "plain")]) == 1
     assert "write the values with `values --pixels`" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("flag", ["--pixels", "--around"])
+def test_point_pixels_need_a_pool_that_names_its_run(tmp_path, capsys, flag):
+    """The hidden points come from the pool's run (its answers, its dataset): a collected pool has none."""
+    study = load_tool("score_study")
+    root = write_tiny_dataset(tmp_path / "ds")
+    pool = _pool_file(tmp_path / "pool.json", str(root), [], "thesis")
+    assert study.main(["values", str(pool), "--out", str(tmp_path / "v"), flag]) == 1
+    assert "no run recorded (--pixels and --around need a pool made by from-run)" in capsys.readouterr().err

@@ -370,8 +370,10 @@ def values(args: argparse.Namespace) -> None:
     """Every pooled pose's feature-point values under one score, a file per target (resumable)."""
     sel, by_key, rows, weights = _open_pool(args.pool, args.weights, args.limit)
     tables = bop.TableCache("auto")
-    run = Path(json.loads(Path(args.pool).read_text()).get("run") or "")
-    answers = run_answers(run, sel) if args.around else None
+    run = json.loads(Path(args.pool).read_text()).get("run")
+    if (args.pixels or args.around) and not run:
+        raise PerchError(f"{args.pool}: no run recorded (--pixels and --around need a pool made by from-run)")
+    answers = run_answers(Path(run), sel) if args.around else None
     args.out.mkdir(parents=True, exist_ok=True)
     engines: dict[int, tuple[Engine, np.ndarray]] = {}
     t_all = time.perf_counter()
