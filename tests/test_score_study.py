@@ -345,6 +345,18 @@ def test_occlusion_drops_what_another_targets_answer_hides(tmp_path, capsys):
     assert "+[] -[]" in out["hidden0"]  # the hider, 30 cm off
     assert "+[(1, 2, 1)] -[]" in out["hidden0.25"] and "100.00" in out["hidden0.25"]
     assert "+[] -[]" in out["hidden1"]
+    # the picture of the two picks: one 400 x 300 tile per target named; a key without values is named
+    pic = tmp_path / "pic.jpg"
+    assert study.main(["occlusion", str(folder), "--betas", "0.25", "--draw", str(pic), "--draw-keys", "1/2/1"]) == 0
+    from PIL import Image
+
+    with Image.open(pic) as im_pic:
+        assert im_pic.size == (400, 300) and im_pic.format == "JPEG"
+    assert study.main(["occlusion", str(folder), "--draw", str(tmp_path / "x.jpg"), "--draw-keys", "1/1/0"]) == 1
+    assert study.main(["occlusion", str(folder), "--draw", str(tmp_path / "x.jpg")]) == 1
+    err = capsys.readouterr().err
+    assert "values_1_1_0.npz: missing" in err and "--draw FILE and --draw-keys KEY ... go together" in err
+    assert not (tmp_path / "x.jpg").exists()
     # the truth's own silhouettes hide nothing of this made-up target's points the same way, but they run
     assert study.main(["occlusion", str(folder), "--occluders", "truth", "--betas", "0.25"]) == 0
     capsys.readouterr()

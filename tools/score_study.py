@@ -13,6 +13,8 @@ then re-score them under every candidate score (issue 17's development protocol)
     python tools/score_study.py reductions VALUES/ [--base top0.5] [--verbose]
     python tools/score_study.py values POOL.json --out VALUES_HALF/ --image-scale 0.5
     python tools/score_study.py blend VALUES/ VALUES_HALF/ [--weights 0.25 0.5] [--verbose]
+    python tools/score_study.py values POOL.json --out VALUES_AROUND/ --around     # a from-run pool
+    python tools/score_study.py occlusion VALUES_AROUND/ [--occluders run|truth] [--betas 0 0.25] [--verbose]
 
 `collect` runs, per target (thesis protocol: height, roll and pitch from the ground truth), the
 exact (pruned) search of the default region on a coarse grid under a score (`--score`, the thesis's
@@ -41,6 +43,11 @@ reducing a pose's values to its score (REDUCTIONS: top-α for several α, floors
 on those files, without rendering anything again, and pairs each with the top-0.5 mean. `blend` pairs
 one folder's top-0.5 means with their blend with another folder's, the same poses valued at another photo
 scale (`values --image-scale 0.5`: conv1's 11 x 11 windows then see 22 x 22 pixels of the photo).
+`occlusion` drops, from each pose's values, the points that lie under another target's answer in the
+pool's run (its rendered silhouette, when its model origin is nearer the camera than the pose's) and
+takes the top-0.5 mean of the rest, counted from at least beta of all points (hidden_top_mean); it
+needs `values --pixels` (each point's photo pixel), and `--around` adds poses around and behind the
+other answers, where such a score could newly favour a pose that hides behind them.
 """
 
 from __future__ import annotations
@@ -604,36 +611,93 @@ def occlusion(args: argparse.Namespace) -> None:
     """Each target's pick when the points hidden by the other targets' answers in the pool's run (or, with
     --occluders truth, by every other object at its true pose: an upper bound) are dropped, paired with
     the top-0.5 mean of all points."""
-    files = _values_files(args.dir)
+    if bool(args.draw) != bool(args.draw_keys):
+        raise PerchError("--draw FILE and --draw-keys KEY ... go together")
     names = ["top0.5", *(f"hidden{b:g}" for b in args.betas)]
     runs: dict[str, tuple] = {}
     targets = []
-    for f in files:
+    for f in _values_files(args.dir):
         z = dict(np.load(f))
-        if "uv" not in z:
-            raise PerchError(f"{f}: no point pixels (write the values with `values --pixels`)")
-        run = str(z["run"])
-        if run not in runs:
-            runs[run] = _occluder_source(Path(run), args.occluders)
-        sel, by_key, placed = runs[run]
-        key = tuple(int(k) for k in z["key"])
-        im, _ = by_key[key]
-        occluders = [
-            (silhouette(im.camera, *_mesh_arrays(sel, obj), R, t), float(np.linalg.norm(t)))
-            for inst, obj, R, t in placed.get(key[:2], [])
-            if inst != key[2]
-        ]
-        off = np.concatenate([[0], np.cumsum(z["lens"])])
-        scores = reduce_values(z["values"], z["lens"], ["top0.5"])
-        for b in args.betas:
-            scores[f"hidden{b:g}"] = np.full(len(z["lens"]), -np.inf)
-        for i in np.flatnonzero(z["lens"]):
-            v, uv = z["values"][off[i] : off[i + 1]], z["uv"][off[i] : off[i + 1]]
-            hid = hidden_points(uv, float(z["dist_m"][i]), occluders)
-            for b in args.betas:
-                scores[f"hidden{b:g}"][i] = hidden_top_mean(v, hid, b)
+        scores, _, _ = _occlusion_scores(z, f, args.occluders, args.betas, runs)
         targets.append((z, scores))
     _report_picks(targets, names, f"occl. ({args.occluders})", args.verbose)
+    if args.draw:
+        _draw_occlusion(args, runs)
+
+
+def _occlusion_scores(z: dict, path: Path, which: str, betas, runs: dict):
+    """One target's scores per pose (top0.5 and hidden<beta>), each pose's hidden points (a list of bool
+    arrays), and the photo and occluders' silhouettes they came from (image, [(mask, distance_m)])."""
+    if "uv" not in z:
+        raise PerchError(f"{path}: no point pixels (write the values with `values --pixels`)")
+    run = str(z["run"])
+    if run not in runs:
+        runs[run] = _occluder_source(Path(run), which)
+    sel, by_key, placed = runs[run]
+    key = tuple(int(k) for k in z["key"])
+    im, _ = by_key[key]
+    occluders = [
+        (silhouette(im.camera, *_mesh_arrays(sel, obj), R, t), float(np.linalg.norm(t)))
+        for inst, obj, R, t in placed.get(key[:2], [])
+        if inst != key[2]
+    ]
+    off = np.concatenate([[0], np.cumsum(z["lens"])])
+    scores = reduce_values(z["values"], z["lens"], ["top0.5"])
+    for b in betas:
+        scores[f"hidden{b:g}"] = np.full(len(z["lens"]), -np.inf)
+    hidden = []
+    for i in range(len(z["lens"])):
+        v, uv = z["values"][off[i] : off[i + 1]], z["uv"][off[i] : off[i + 1]]
+        hid = hidden_points(uv, float(z["dist_m"][i]), occluders)
+        hidden.append(hid)
+        for b in betas if len(v) else ():
+            scores[f"hidden{b:g}"][i] = hidden_top_mean(v, hid, b)
+    return scores, hidden, (im, occluders)
+
+
+def _draw_occlusion(args: argparse.Namespace, runs: dict) -> None:
+    """A picture per `--draw-keys` target side by side (args.draw, JPEG): the photo around the two picks,
+    the occluders' outlines in white, the top-0.5 mean's pick's points in magenta, the pick with hidden
+    points dropped (the first --betas) in green where visible and grey where hidden."""
+    from PIL import Image, ImageDraw
+
+    beta = args.betas[0]
+    tiles = []
+    for key in args.draw_keys:
+        path = Path(args.dir) / values_file(tuple(int(k) for k in key.split("/")))
+        if not path.is_file():
+            raise PerchError(f"{path}: missing (--draw-keys names targets as scene/image/instance)")
+        z = dict(np.load(path))
+        scores, hidden, (im, occluders) = _occlusion_scores(z, path, args.occluders, [beta], runs)
+        off = np.concatenate([[0], np.cumsum(z["lens"])])
+        a, b = int(np.argmax(scores["top0.5"])), int(np.argmax(scores[f"hidden{beta:g}"]))
+        pic = Image.open(im.rgb).convert("RGB")
+        draw = ImageDraw.Draw(pic)
+        for mask, _ in occluders:
+            edge = mask & ~(np.roll(mask, 1, 0) & np.roll(mask, -1, 0) & np.roll(mask, 1, 1) & np.roll(mask, -1, 1))
+            for v, u in np.argwhere(edge):
+                draw.point((int(u), int(v)), fill=(255, 255, 255))
+        marks = [(uv, (255, 0, 255)) for uv in z["uv"][off[a] : off[a + 1]]]
+        for uv, h in zip(z["uv"][off[b] : off[b + 1]], hidden[b], strict=True):
+            marks.append((uv, (150, 150, 150) if h else (0, 230, 0)))
+        for (u, v), colour in marks:
+            draw.rectangle([int(u) - 1, int(v) - 1, int(u) + 1, int(v) + 1], fill=colour)
+        pts = np.array([m[0] for m in marks], dtype=np.float64).reshape(-1, 2)
+        lo, hi = pts.min(0) - 30, pts.max(0) + 30
+        w = min(max(hi[0] - lo[0], (hi[1] - lo[1]) * 4 / 3, 240), pic.width, pic.height * 4 / 3)
+        x0 = float(np.clip((lo[0] + hi[0] - w) / 2, 0, pic.width - w))
+        y0 = float(np.clip((lo[1] + hi[1]) / 2 - w * 3 / 8, 0, pic.height - w * 3 / 4))
+        tile = pic.crop((int(x0), int(y0), int(x0 + w), int(y0 + w * 3 / 4))).resize((400, 300))
+        label = f"{key}: top-0.5 mean {100 * z['adds_m'][a]:.1f} cm, hidden ({beta:g}) {100 * z['adds_m'][b]:.1f} cm"
+        td = ImageDraw.Draw(tile)
+        td.rectangle([0, 0, 400, 14], fill=(0, 0, 0))
+        td.text((4, 2), label, fill=(255, 255, 0))
+        tiles.append(tile)
+    sheet = Image.new("RGB", (400 * len(tiles), 300))
+    for i, tile in enumerate(tiles):
+        sheet.paste(tile, (400 * i, 0))
+    atomic_write(Path(args.draw), lambda f: sheet.save(f, format="JPEG", quality=85))
+    print(f"picture: {args.draw}")
 
 
 _MESHES: dict[str, tuple[np.ndarray, np.ndarray]] = {}
@@ -842,6 +906,8 @@ def main(argv: list[str] | None = None) -> int:
         help="the other targets' answers in the pool's run (default), or every object's true pose",
     )
     oc.add_argument("--verbose", action="store_true", help="a line per target")
+    oc.add_argument("--draw", type=Path, help="a JPEG of the --draw-keys targets' two picks (the first --betas)")
+    oc.add_argument("--draw-keys", nargs="+", default=[], help="targets to draw, as scene/image/instance")
     m = sub.add_parser("merge", help="one pool from several collected under different scores")
     m.add_argument("pools", type=Path, nargs="+")
     m.add_argument("--out", type=Path, required=True)
