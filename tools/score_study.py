@@ -650,7 +650,9 @@ def _occlusion_scores(z: dict, path: Path, which: str, betas, runs: dict):
         v, uv = z["values"][off[i] : off[i + 1]], z["uv"][off[i] : off[i + 1]]
         hid = hidden_points(uv, float(z["dist_m"][i]), occluders)
         hidden.append(hid)
-        for b in betas if len(v) else ():
+        if not len(v):
+            continue  # no points: -inf under every beta, as under the top-0.5 mean
+        for b in betas:
             scores[f"hidden{b:g}"][i] = hidden_top_mean(v, hid, b)
     return scores, hidden, (im, occluders)
 
