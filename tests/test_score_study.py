@@ -354,8 +354,10 @@ def test_occlusion_drops_what_another_targets_answer_hides(tmp_path, capsys):
         assert im_pic.size == (400, 300) and im_pic.format == "JPEG"
     assert study.main(["occlusion", str(folder), "--draw", str(tmp_path / "x.jpg"), "--draw-keys", "1/1/0"]) == 1
     assert study.main(["occlusion", str(folder), "--draw", str(tmp_path / "x.jpg")]) == 1
+    assert study.main(["occlusion", str(folder), "--draw", str(tmp_path / "x.jpg"), "--draw-keys", "1-2-1"]) == 1
     err = capsys.readouterr().err
     assert "values_1_1_0.npz: missing" in err and "--draw FILE and --draw-keys KEY ... go together" in err
+    assert "--draw-keys '1-2-1': name a target as scene/image/instance, e.g. 1/12/0" in err
     assert not (tmp_path / "x.jpg").exists()
     # the truth's own silhouettes hide nothing of this made-up target's points the same way, but they run
     assert study.main(["occlusion", str(folder), "--occluders", "truth", "--betas", "0.25"]) == 0

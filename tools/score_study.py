@@ -66,6 +66,7 @@ from perch_warp import bop, pose_error
 from perch_warp.engine import Engine, EngineConfig
 from perch_warp.errors import PerchError
 from perch_warp.eval import journal
+from perch_warp.eval.metrics import GeometryCache
 from perch_warp.eval.plots import heatmap_path, silhouette
 from perch_warp.features import load_feature_weights
 from perch_warp.image import load_rgb
@@ -597,11 +598,11 @@ def hidden_points(uv: np.ndarray, dist_m: float, occluders: list[tuple[np.ndarra
     an occluder whose model origin is nearer the camera than the pose's (dist_m): the comparison of
     centres perch_warp/joint.py makes (objects standing on a table rarely interleave)."""
     out = np.zeros(len(uv), dtype=bool)
+    u, v = uv[:, 0].astype(np.int64), uv[:, 1].astype(np.int64)
     for mask, d in occluders:
         if d >= dist_m:
             continue
         h, w = mask.shape
-        u, v = uv[:, 0].astype(np.int64), uv[:, 1].astype(np.int64)
         inside = (u >= 0) & (u < w) & (v >= 0) & (v < h)
         out[inside] |= mask[v[inside], u[inside]]
     return out
@@ -613,34 +614,39 @@ def occlusion(args: argparse.Namespace) -> None:
     the top-0.5 mean of all points."""
     if bool(args.draw) != bool(args.draw_keys):
         raise PerchError("--draw FILE and --draw-keys KEY ... go together")
+    draw_keys = [_parse_key(k) for k in args.draw_keys]
     names = ["top0.5", *(f"hidden{b:g}" for b in args.betas)]
-    runs: dict[str, tuple] = {}
-    targets = []
+    sources: dict[str, _Occluders] = {}
+    targets, drawn = [], {}
     for f in _values_files(args.dir):
         z = dict(np.load(f))
-        scores, _, _ = _occlusion_scores(z, f, args.occluders, args.betas, runs)
+        if "uv" not in z:
+            raise PerchError(f"{f}: no point pixels (write the values with `values --pixels`)")
+        run = str(z["run"])
+        if run not in sources:
+            sources[run] = _Occluders.of_run(Path(run), args.occluders)
+        key = tuple(int(k) for k in z["key"])
+        im, occluders = sources[run].of_target(key)
+        scores, hidden = _occlusion_scores(z, occluders, args.betas)
         targets.append((z, scores))
+        if key in draw_keys:
+            drawn[key] = (z, scores, hidden, im, occluders)
     _report_picks(targets, names, f"occl. ({args.occluders})", args.verbose)
     if args.draw:
-        _draw_occlusion(args, runs)
+        _draw_occlusion(args, draw_keys, drawn)
 
 
-def _occlusion_scores(z: dict, path: Path, which: str, betas, runs: dict):
-    """One target's scores per pose (top0.5 and hidden<beta>), each pose's hidden points (a list of bool
-    arrays), and the photo and occluders' silhouettes they came from (image, [(mask, distance_m)])."""
-    if "uv" not in z:
-        raise PerchError(f"{path}: no point pixels (write the values with `values --pixels`)")
-    run = str(z["run"])
-    if run not in runs:
-        runs[run] = _occluder_source(Path(run), which)
-    sel, by_key, placed = runs[run]
-    key = tuple(int(k) for k in z["key"])
-    im, _ = by_key[key]
-    occluders = [
-        (silhouette(im.camera, *_mesh_arrays(sel, obj), R, t), float(np.linalg.norm(t)))
-        for inst, obj, R, t in placed.get(key[:2], [])
-        if inst != key[2]
-    ]
+def _parse_key(text: str) -> tuple[int, int, int]:
+    """A target named scene/image/instance, e.g. 1/12/0."""
+    parts = text.split("/")
+    if len(parts) != 3 or not all(p.isdigit() for p in parts):
+        raise PerchError(f"--draw-keys {text!r}: name a target as scene/image/instance, e.g. 1/12/0")
+    return tuple(int(p) for p in parts)  # type: ignore[return-value]
+
+
+def _occlusion_scores(z: dict, occluders: list[tuple[np.ndarray, float]], betas) -> tuple[dict, list]:
+    """One target's scores per pose (top0.5 and hidden<beta>) and each pose's hidden points (bool arrays),
+    given the silhouettes (H, W) and camera distances (m) of what may hide it."""
     off = np.concatenate([[0], np.cumsum(z["lens"])])
     scores = reduce_values(z["values"], z["lens"], ["top0.5"])
     for b in betas:
@@ -654,10 +660,10 @@ def _occlusion_scores(z: dict, path: Path, which: str, betas, runs: dict):
             continue  # no points: -inf under every beta, as under the top-0.5 mean
         for b in betas:
             scores[f"hidden{b:g}"][i] = hidden_top_mean(v, hid, b)
-    return scores, hidden, (im, occluders)
+    return scores, hidden
 
 
-def _draw_occlusion(args: argparse.Namespace, runs: dict) -> None:
+def _draw_occlusion(args: argparse.Namespace, keys: list[tuple[int, int, int]], drawn: dict) -> None:
     """A picture per `--draw-keys` target side by side (args.draw, JPEG): the photo around the two picks,
     the occluders' outlines in white, the top-0.5 mean's pick's points in magenta, the pick with hidden
     points dropped (the first --betas) in green where visible and grey where hidden."""
@@ -665,12 +671,11 @@ def _draw_occlusion(args: argparse.Namespace, runs: dict) -> None:
 
     beta = args.betas[0]
     tiles = []
-    for key in args.draw_keys:
-        path = Path(args.dir) / values_file(tuple(int(k) for k in key.split("/")))
-        if not path.is_file():
+    for key in keys:
+        if key not in drawn:
+            path = Path(args.dir) / values_file(key)
             raise PerchError(f"{path}: missing (--draw-keys names targets as scene/image/instance)")
-        z = dict(np.load(path))
-        scores, hidden, (im, occluders) = _occlusion_scores(z, path, args.occluders, [beta], runs)
+        z, scores, hidden, im, occluders = drawn[key]
         off = np.concatenate([[0], np.cumsum(z["lens"])])
         a, b = int(np.argmax(scores["top0.5"])), int(np.argmax(scores[f"hidden{beta:g}"]))
         pic = Image.open(im.rgb).convert("RGB")
@@ -690,7 +695,8 @@ def _draw_occlusion(args: argparse.Namespace, runs: dict) -> None:
         x0 = float(np.clip((lo[0] + hi[0] - w) / 2, 0, pic.width - w))
         y0 = float(np.clip((lo[1] + hi[1]) / 2 - w * 3 / 8, 0, pic.height - w * 3 / 4))
         tile = pic.crop((int(x0), int(y0), int(x0 + w), int(y0 + w * 3 / 4))).resize((400, 300))
-        label = f"{key}: top-0.5 mean {100 * z['adds_m'][a]:.1f} cm, hidden ({beta:g}) {100 * z['adds_m'][b]:.1f} cm"
+        name = "/".join(str(k) for k in key)
+        label = f"{name}: top-0.5 mean {100 * z['adds_m'][a]:.1f} cm, hidden ({beta:g}) {100 * z['adds_m'][b]:.1f} cm"
         td = ImageDraw.Draw(tile)
         td.rectangle([0, 0, 400, 14], fill=(0, 0, 0))
         td.text((4, 2), label, fill=(255, 255, 0))
@@ -702,33 +708,46 @@ def _draw_occlusion(args: argparse.Namespace, runs: dict) -> None:
     print(f"picture: {args.draw}")
 
 
-_MESHES: dict[str, tuple[np.ndarray, np.ndarray]] = {}
+class _Occluders:
+    """What may hide a target of a run's dataset: by image (scene, im), (inst, obj_id, R_m2c, t_m2c_m) of
+    the run's answers ("run") or of every instance at its true pose ("truth"); each one's silhouette in
+    the photo rendered once and kept, since every other target of its image asks for it. (A plain class:
+    a dataclass needs its module in sys.modules, which a tool loaded from its file is not.)"""
 
+    def __init__(self, by_key: dict, placed: dict, geometry: GeometryCache):
+        self.by_key, self.placed, self.geometry = by_key, placed, geometry
+        self.masks: dict[tuple[int, int, int], tuple[np.ndarray, float]] = {}
 
-def _mesh_arrays(sel, obj_id: int) -> tuple[np.ndarray, np.ndarray]:
-    """A model's vertices (metres, model frame) and faces, loaded once."""
-    path = str(sel.model_paths[obj_id])
-    if path not in _MESHES:
-        mesh = load_mesh(path)
-        _MESHES[path] = (np.asarray(mesh.vertices_m), np.asarray(mesh.faces))
-    return _MESHES[path]
+    @classmethod
+    def of_run(cls, run: Path, which: str) -> _Occluders:
+        cfg_path = run / journal.CONFIG_FILE
+        if not cfg_path.is_file():
+            raise PerchError(f"{cfg_path}: not found (the values' run must be a perch_warp eval output folder)")
+        cfg = json.loads(cfg_path.read_text())
+        sel = bop.select_targets(bop.open_dataset(cfg["dataset"], cfg.get("split", "test"), None))
+        by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
+        if which == "run":
+            placed = run_answers(run, sel)
+        else:
+            placed = {}
+            for im in sel.images:
+                placed[(im.scene_id, im.im_id)] = [(t.inst, t.obj_id, t.R_gt, t.t_gt_m) for t in im.targets]
+        return cls(by_key, placed, GeometryCache(sel.model_paths))
 
-
-def _occluder_source(run: Path, which: str):
-    """The run's dataset selection (every instance with a mesh), its targets by key, and what may hide a
-    target, by image: the run's answers ("run") or every instance at its true pose ("truth")."""
-    cfg_path = run / journal.CONFIG_FILE
-    if not cfg_path.is_file():
-        raise PerchError(f"{cfg_path}: not found (the values' run must be a perch_warp eval output folder)")
-    cfg = json.loads(cfg_path.read_text())
-    sel = bop.select_targets(bop.open_dataset(cfg["dataset"], cfg.get("split", "test"), None))
-    by_key = {tuple(t.key): (im, t) for im in sel.images for t in im.targets}
-    if which == "run":
-        return sel, by_key, run_answers(run, sel)
-    placed: dict[tuple[int, int], list] = {}
-    for im in sel.images:
-        placed[(im.scene_id, im.im_id)] = [(t.inst, t.obj_id, t.R_gt, t.t_gt_m) for t in im.targets]
-    return sel, by_key, placed
+    def of_target(self, key: tuple[int, int, int]):
+        """The target's image and the (silhouette (H, W), distance from the camera in m) of every other
+        instance placed in it."""
+        im, _ = self.by_key[key]
+        out = []
+        for inst, obj, R, t in self.placed.get(key[:2], []):
+            if inst == key[2]:
+                continue
+            k = (*key[:2], inst)
+            if k not in self.masks:
+                V, F, _ = self.geometry.get(obj)
+                self.masks[k] = (silhouette(im.camera, V, F, R, t), float(np.linalg.norm(t)))
+            out.append(self.masks[k])
+        return im, out
 
 
 def _report_picks(targets: list[tuple], names: list[str], what: str, verbose: bool) -> None:
