@@ -14,6 +14,7 @@ import numpy as np
 import warp as wp
 
 from .camera import Camera
+from .hidden import HiddenPoints, hide
 from .kernels.bound import rarity_at_hits
 from .render import Renderer, point_layout
 from .score import top_alpha_mean_device
@@ -33,12 +34,15 @@ def silhouette_points(
     ceiling: wp.array,
     kernel_size: int,
     stride: int,
+    hidden: HiddenPoints | None = None,
 ) -> tuple[wp.array, wp.array]:
     """The ceiling map (each point's largest possible value) at each candidate's silhouette feature
     points (NOT_ON_MASK off it, 0 beyond the photo)
     and the flat offsets (B + 1,), device arrays in the layout of FeatureScorer.score_points.
     Poses are model-to-camera (R (B, 3, 3), t (B, 3) metres); boxes are pixels, gboxes feature cells.
-    The silhouette is the renderer's own (Renderer.silhouette): the mask kernel #2 will read."""
+    The silhouette is the renderer's own (Renderer.silhouette): the mask kernel #2 will read. With
+    `hidden` (perch_warp.hidden) the points another object covers nearer than the candidate's model origin
+    are HIDDEN, exactly as kernel #2's values are marked."""
     layout = point_layout(boxes, gboxes, kernel_size, stride, renderer.device)
     hits = renderer.silhouette(camera, R_m2c, t_m2c_m, layout)
     with wp.ScopedDevice(renderer.device):
@@ -49,6 +53,8 @@ def silhouette_points(
             inputs=[hits, layout, ceiling],
             outputs=[out],
         )
+    if hidden is not None:
+        hide(out, layout, np.linalg.norm(t_m2c_m, axis=1), hidden, 1)
     return out, layout.pt_off
 
 
@@ -64,11 +70,16 @@ def silhouette_bounds(
     stride: int,
     alpha: float,
     shrink: float = 0.0,
+    hidden: HiddenPoints | None = None,
 ) -> np.ndarray:
     """Upper bound (B,) float64 of each candidate's score; -inf where no feature point is on its
-    silhouette (its score is then -inf too)."""
-    vals, offsets = silhouette_points(renderer, camera, R_m2c, t_m2c_m, boxes, gboxes, ceiling, kernel_size, stride)
-    return top_alpha_mean_device(vals, offsets, alpha, shrink)[0].numpy()
+    silhouette, or every one is hidden (its score is then -inf too). With `hidden`: the bound of the
+    score that leaves out what other objects hide (perch_warp.hidden), reduced as that score is."""
+    vals, offsets = silhouette_points(
+        renderer, camera, R_m2c, t_m2c_m, boxes, gboxes, ceiling, kernel_size, stride, hidden
+    )
+    beta = 0.0 if hidden is None else hidden.beta
+    return top_alpha_mean_device(vals, offsets, alpha, shrink, beta=beta)[0].numpy()
 
 
 def next_to_score(bounds_sorted: np.ndarray, start: int, threshold: float) -> int:

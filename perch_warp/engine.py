@@ -27,13 +27,14 @@ from .confidence import Confidence, grid_confidence, yaw_differs
 from .config import SEARCHES, EngineConfig
 from .errors import PerchError
 from .features import FeatureWeights, smoothed
+from .hidden import DEFAULT_BETA, HiddenPoints, hidden_points, occluder_map
 from .image import check_rgb
 from .mesh import ObjectMesh
 from .peaks import top_location_candidates
 from .render import BoxProjector, DeviceMesh, Renderer, auto_renderer, make_renderer
 from .resting import Rest
 from .result import Candidate, RestingChoice, Result, SearchInfo
-from .score import FeatureScorer, auto_conv
+from .score import FeatureScorer, auto_conv, grid_shape
 from .score_map import ScoreMap, knowledge, score_map, score_map_over_rests
 from .score_terms import parse_score
 from .search import rests as over_rests
@@ -174,16 +175,33 @@ class Engine:
             self._backends(), self.config, self.terms, image_rgb, camera, {} if timings is None else timings
         )
 
+    def hidden_by(
+        self, camera: Camera, placed: Sequence[tuple[Engine, np.ndarray]], beta: float = DEFAULT_BETA
+    ) -> HiddenPoints:
+        """What the objects `placed` hide of this engine's object in a photo taken by `camera` (before
+        image_scale): each (the engine of its mesh, its model-to-camera pose T (4, 4), metres) rendered and
+        kept by its model origin's distance from the camera, as perch_warp.hidden's occluder map on the
+        feature grid this engine scores; pass it to `estimate(..., hidden=)`."""
+        cam = camera.scaled(self.config.image_scale) if self.config.image_scale != 1.0 else camera
+        rows, cols = grid_shape(cam.width, cam.height, self.weights.kernel_size, self.config.stride)
+        silhouettes = []
+        for engine, T in placed:
+            T = np.asarray(T, dtype=np.float64)
+            silhouettes.append((engine.render(cam, T)[1], float(np.linalg.norm(T[:3, 3]))))
+        near = occluder_map(silhouettes, rows, cols, self.weights.kernel_size, self.config.stride)
+        return hidden_points(near, beta, len(placed), self.device)
+
     def _backends(self) -> Backends:
         return Backends(self.scorer, self.boxes, self.weights, self.device)
 
     def _service(
-        self, image_rgb, camera, table, resting, renderer: Renderer, timings: dict, bar, photo: Photo | None = None
-    ) -> ScoringService:
+        self, image_rgb, camera, table, resting, renderer: Renderer, timings: dict, bar, photo: Photo | None = None,
+        hidden: HiddenPoints | None = None,
+    ) -> ScoringService:  # fmt: skip
         backends = self._backends()
         if photo is None:
             photo = photo_on_device(backends, self.config, self.terms, image_rgb, camera, timings)
-        args = (photo, camera, table, resting, renderer, timings, bar)
+        args = (photo, camera, table, resting, renderer, timings, bar, hidden)
         return ScoringService(backends, self.config, self.terms, *args)
 
     def estimate(
@@ -197,6 +215,7 @@ class Engine:
         probe: tuple[float, float, float] | None = None,
         probe_resting: RestingPose | None = None,
         photo: Photo | None = None,
+        hidden: HiddenPoints | None = None,
     ) -> Result:
         """Best (x, y, yaw) of the object in the photo; see the module doc for the stages.
 
@@ -206,17 +225,21 @@ class Engine:
         the best pose and score within that pose's cell (one grid step either side at the refinement's
         resolution, not cut to the space) on the same photo, under `probe_resting` (default: the
         winning resting pose), in info.extra["probe"]; it never changes the answer. `photo`: this photo's
-        features and rarity from `Engine.photo` (several objects in one photo), else computed here."""
+        features and rarity from `Engine.photo` (several objects in one photo), else computed here.
+        `hidden`: what other objects hide in this photo (perch_warp.hidden, on the photo's grid after
+        image_scale: `Engine.hidden_by`), left out of every score and bound; recorded in info.extra["hidden"]."""
         if not isinstance(resting, RestingPose):
             rests = list(resting)
-            return self._estimate_rests(image_rgb, camera, table, rests, space, progress, probe, probe_resting, photo)
+            return self._estimate_rests(
+                image_rgb, camera, table, rests, space, progress, probe, probe_resting, photo, hidden
+            )
         timings: dict[str, float] = {}
         image_rgb, camera = self._scaled(image_rgb, camera)
         choice = self._pick_renderer(camera, table, resting, space)
         bar = _bar(progress, f"search on {self.device}")
         t_start = time.perf_counter()
         try:
-            service = self._service(image_rgb, camera, table, resting, choice.renderer, timings, bar, photo)
+            service = self._service(image_rgb, camera, table, resting, choice.renderer, timings, bar, photo, hidden)
             out, top = self._search(service, space)
             assessed = self._assess(service, space, out, top[0][:3], resting)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more.
@@ -229,6 +252,8 @@ class Engine:
             if bar is not None:
                 bar.close()
         timings["total"] = wall_s
+        if hidden is not None:
+            out.extra["hidden"] = hidden.to_dict()
         return self._result(table, resting, space, out, top, timings, choice, assessed)
 
     def _search(self, service: ScoringService, space: SearchSpace) -> tuple[Outcome, list]:
@@ -321,7 +346,7 @@ class Engine:
         return Result(cands[0], cands, n, n_scored, timings, self.device, info, confidence=conf, heatmap=smap)
 
     def _estimate_rests(
-        self, image_rgb, camera, table, rests: list[Rest], space, progress, probe, probe_resting, photo
+        self, image_rgb, camera, table, rests: list[Rest], space, progress, probe, probe_resting, photo, hidden
     ):
         """`estimate` over several resting poses (search/rests.py), on one scoring service."""
         if not rests:
@@ -333,13 +358,13 @@ class Engine:
         bar = _bar(progress, f"search on {self.device}")
         t_start = time.perf_counter()
         try:
-            first = self._service(image_rgb, camera, table, rests[0].pose, choice.renderer, timings, bar, photo)
+            first = self._service(image_rgb, camera, table, rests[0].pose, choice.renderer, timings, bar, photo, hidden)
             services = [over_rests.with_rest(first, r.pose) for r in rests]
             outs = over_rests.search_all(services, space, self.search, [r.label for r in rests])
             top = over_rests.joint_top(outs, space, self.config)
             if not top:
                 raise PerchError(f"the search grid projects outside the image ({space.describe()})")
-            extra: dict = {}
+            extra: dict = {} if hidden is None else {"hidden": hidden.to_dict()}
             if self.config.refine:
                 top, extra["refine"] = over_rests.refine_joint(services, space, top, self.search, self.config)
             top = top[: self.config.top_k]

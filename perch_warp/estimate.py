@@ -16,6 +16,7 @@ from .mesh import load_mesh
 from .options import (
     add_joint_peaks_argument,
     add_method_arguments,
+    add_occluders_argument,
     add_search_arguments,
     build_engine,
     engine_config_from_args,
@@ -46,6 +47,10 @@ def run(args: argparse.Namespace) -> int:
         from .several import run_several  # the several-object command lives in its own module
 
         return run_several(args, objects)
+    if args.occluders != "none":
+        raise PerchError(
+            f"--occluders {args.occluders} needs several objects (--mesh a.obj --mesh b.obj, or --objects ID ID)"
+        )
     args.mesh, obj_id = objects[0].mesh, objects[0].obj_id
     if obj_id is not None and args.obj_id is None:
         args.obj_id = obj_id
@@ -336,6 +341,7 @@ def _add_object_arguments(p: argparse.ArgumentParser) -> None:
         help="object ids to find in --models (several: the joint step; with --truth, their ground truths)",
     )
     add_joint_peaks_argument(p, "several objects")
+    add_occluders_argument(p, "several objects")
 
 
 def _add_table_arguments(p: argparse.ArgumentParser) -> None:

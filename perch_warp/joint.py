@@ -147,12 +147,17 @@ def hidden_share(near_mask: np.ndarray, far_mask: np.ndarray) -> float:
     return int(np.count_nonzero(near_mask & far_mask)) / n if n else 0.0
 
 
-def conflict(p: Peak, q: Peak, alpha: float, overlap_m: float = DEFAULT_OVERLAP_M) -> str | None:
-    """Why answers p and q cannot both hold (module doc), or None."""
+def conflict(
+    p: Peak, q: Peak, alpha: float, overlap_m: float = DEFAULT_OVERLAP_M, hidden_rule: bool = True
+) -> str | None:
+    """Why answers p and q cannot both hold (module doc), or None; footprints only without `hidden_rule`
+    (scores that leave out what another object hides: perch_warp.hidden)."""
     depth = footprint_overlap_m(p.footprint_m, q.footprint_m)
     height = min(p.z_m[1], q.z_m[1]) - max(p.z_m[0], q.z_m[0])
     if depth > overlap_m and height > overlap_m:
         return f"footprints overlap by {depth * 100:.1f} cm"
+    if not hidden_rule:
+        return None
     near, far = (p, q) if p.distance_m <= q.distance_m else (q, p)
     hidden = hidden_share(near.mask, far.mask)
     if hidden > 1.0 - alpha:

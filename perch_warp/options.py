@@ -322,6 +322,18 @@ def add_joint_peaks_argument(p, when: str) -> None:
     )
 
 
+def add_occluders_argument(p, when: str) -> None:
+    """--occluders, for the image command (several objects) and eval (--joint); `when` says which."""
+    p.add_argument(
+        "--occluders",
+        choices=("none", "answers"),
+        default="none",
+        help=f"{when}: 'answers' searches each object a second time with the other objects' answers as "
+        "occluders: its points they cover, nearer the camera, are left out of its score (about twice the "
+        "search time; perch_warp.hidden); default: none",
+    )
+
+
 def build_engine(args: argparse.Namespace, mesh, quiet: bool = False, config=None, weights=None):
     """Weights, device and engine from the method options (or the `config` and loaded `weights` given),
     saying what was chosen."""

@@ -22,6 +22,7 @@ from .kernels.features import (
     read_at_exposure,
     sums_to_means,
 )
+from .kernels.hidden import HIDDEN
 from .kernels.reduce import top_alpha_mean as top_alpha_mean_kernel
 from .kernels.render import RenderedBoxes
 from .render import RenderedBatch, flat_offsets, point_layout
@@ -442,12 +443,12 @@ def grid_boxes(boxes: np.ndarray, kernel_size: int, stride: int) -> np.ndarray:
 
 
 def top_alpha_mean_device(
-    values: wp.array, offsets: wp.array, alpha: float, shrink: float = 0.0, blocks: int = 1
+    values: wp.array, offsets: wp.array, alpha: float, shrink: float = 0.0, blocks: int = 1, beta: float = 0.0
 ) -> tuple[wp.array, wp.array]:
     """`top_alpha_mean` on the values' device (kernels/reduce.py): scores (S B,) float64 and n (S B,) int32,
     device arrays, so that one number per candidate crosses to the host instead of every point. With
     `blocks` S > 1 the values are S blocks laid out alike (kernel #2 under shifts), block s's candidate c
-    at s B + c."""
+    at s B + c. `beta`: the share of a candidate's points k counts at least when some are HIDDEN."""
     n_cand = offsets.shape[0] - 1
     with wp.ScopedDevice(values.device):
         scores = wp.empty(blocks * n_cand, dtype=wp.float64)
@@ -456,37 +457,44 @@ def top_alpha_mean_device(
             wp.launch(
                 top_alpha_mean_kernel,
                 dim=blocks * n_cand,
-                inputs=[values, offsets, n_cand, float(alpha), float(shrink)],
+                inputs=[values, offsets, n_cand, float(alpha), float(shrink), float(beta)],
                 outputs=[scores, n],
             )
     return scores, n
 
 
 def top_alpha_mean(
-    values: np.ndarray, offsets: np.ndarray, alpha: float, shrink: float = 0.0
+    values: np.ndarray, offsets: np.ndarray, alpha: float, shrink: float = 0.0, beta: float = 0.0
 ) -> tuple[np.ndarray, np.ndarray]:
     """Per candidate: mean of the top k = ceil(α n) of its n on-mask values (their sum over k + shrink),
     and n (the reference for `top_alpha_mean_device`, which the engine runs).
 
     `values` is flat with candidate c at [offsets[c], offsets[c+1]); entries at or below
-    NOT_ON_MASK / 2 are off the mask. Candidates with no on-mask point score -inf.
+    NOT_ON_MASK / 2 are off the mask. Candidates with no on-mask point score -inf. Entries at or below
+    HIDDEN / 2 (kernels/hidden.py) are on the mask but hidden by another object: with V of n visible,
+    k = alpha_count(α, hidden_count(β, V, n)) and the score is the sum of the best min(k, V) visible
+    values over k + shrink (-inf when V = 0).
     """
     counts = np.diff(offsets).astype(np.int64)
-    B = len(counts)
-    width = int(counts.max()) if B else 0
-    M = np.full((B, max(width, 1)), -np.inf, dtype=np.float64)
-    rows = np.repeat(np.arange(B), counts)
-    cols = np.arange(len(values)) - np.repeat(offsets[:-1].astype(np.int64), counts)
-    v = values.astype(np.float64)
-    v[v <= NOT_ON_MASK / 2] = -np.inf
-    M[rows, cols] = v
-    n = np.isfinite(M).sum(1)
-    M = -np.sort(-M, axis=1)
-    k = np.maximum(1, np.ceil(alpha * n - 1e-9)).astype(np.int64)
-    cs = np.cumsum(np.where(np.isfinite(M), M, 0.0), axis=1)
-    scores = cs[np.arange(B), np.minimum(k, M.shape[1]) - 1] / (k + shrink)
-    scores[n == 0] = -np.inf
-    return scores, n
+    out_scores, out_n = np.full(len(counts), -np.inf), np.zeros(len(counts), np.int64)
+    v = np.asarray(values).astype(np.float64)
+    for c, (lo, hi) in enumerate(zip(offsets[:-1], offsets[1:], strict=True)):
+        mine = v[int(lo) : int(hi)]
+        on = mine > NOT_ON_MASK / 2
+        visible = np.sort(mine[on & (mine > HIDDEN / 2)])[::-1]
+        out_n[c] = n = int(on.sum())
+        if len(visible):
+            k = alpha_count(alpha, hidden_count(beta, len(visible), n))
+            out_scores[c] = visible[:k].sum() / (k + shrink)
+    return out_scores, out_n
+
+
+def hidden_count(beta: float, visible: int, n: int) -> int:
+    """The count the top-α share is taken of when `visible` of a candidate's n points are not hidden: n
+    when none is, else max(visible, ceil(β n)) (kernels/reduce.py)."""
+    if visible == n:
+        return n
+    return max(visible, math.ceil(beta * n - 1e-9))
 
 
 def alpha_count(alpha: float, n: int) -> int:

@@ -67,9 +67,12 @@ def run_several(args: argparse.Namespace, objects: list[ObjectSpec]) -> int:
         log(f"search: {space.describe()}" + extent_note(table))
         log(f"objects: {len(objects)}, each with its best {config.refine_peaks} distinct peaks refined")
     searched = [r[0].pose if len(r) == 1 else r for r in restings]
+    if not args.quiet and args.occluders == "answers":
+        log("occluders: each object searched again with the others' answers hiding what they cover")
     answers, choice = estimate_objects(
-        engines, [o.name for o in objects], image, camera, table, searched, space, progress=not args.quiet
-    )
+        engines, [o.name for o in objects], image, camera, table, searched, space, progress=not args.quiet,
+        occluders=args.occluders,
+    )  # fmt: skip
     out = {"image": str(args.image), "rest": args.rest, "objects": [], "joint": choice.to_dict()}
     for o, a, mesh, truth, rests in zip(objects, answers, meshes, truths, restings, strict=True):
         out["objects"].append(_report_object(o, a, mesh, truth, rests, args.rest))
@@ -106,6 +109,8 @@ def _report_object(o: ObjectSpec, a: ObjectAnswer, mesh, truth, rests: list, mod
     print("  " + rest_line(_won(a, rests), len(rests), mode))
     print("  " + a.result.confidence.line() + ("" if not a.changed else " (of the object's own best)"))
     print("  " + timing_line(a.result))
+    if a.first_pass is not None:
+        print("  " + first_pass_line(a))
     if truth is not None:
         print("  ", end="")
         entry["truth"] = truth_error(truth, a.best, mesh.vertices_m)
@@ -130,6 +135,8 @@ def _object_entry(o: ObjectSpec, a: ObjectAnswer, rests: list, mode: str) -> dic
         "own_best": a.result.best.to_dict(),
         "peaks": [c.to_dict() for c in a.peaks],
     }
+    if a.first_pass is not None:  # --occluders answers: the second pass's record and the first's answer
+        entry["occluders"] = {**a.result.info.extra.get("hidden", {}), "first_pass": a.first_pass.best.to_dict()}
     return entry
 
 
@@ -139,6 +146,18 @@ def _object_line(o: ObjectSpec, a: ObjectAnswer) -> str:
     return (
         f"{o.name}: x = {b.x_m:+.4f} m, y = {b.y_m:+.4f} m, yaw = {math.degrees(b.yaw_rad):.1f} deg (table frame), "
         f"score {b.score:.4f}" + (moved if a.changed else "")
+    )
+
+
+def first_pass_line(a: ObjectAnswer) -> str:
+    """Where the first pass (no occluders) put the object, against the answer with the others hiding parts."""
+    f, b = a.first_pass.best, a.best
+    moved_cm = 100.0 * math.hypot(b.x_m - f.x_m, b.y_m - f.y_m)
+    if moved_cm < 0.05 and abs(b.yaw_rad - f.yaw_rad) < 1e-6:
+        return f"first pass (no occluders): the same pose, score {f.score:.4f}"
+    return (
+        f"first pass (no occluders): x = {f.x_m:+.4f} m, y = {f.y_m:+.4f} m, yaw = {math.degrees(f.yaw_rad):.1f} deg, "
+        f"score {f.score:.4f} ({moved_cm:.1f} cm from this answer)"
     )
 
 

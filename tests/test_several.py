@@ -85,10 +85,9 @@ def _pose(p: dict) -> np.ndarray:
     return T
 
 
-def test_eval_joint_pairs_each_target_with_its_own_answer(scene, tmp_path, capsys):
-    """eval --joint on a BOP dataset whose one image holds two copies of the demo box at the same pose (obj 1
-    and obj 2, the same mesh): both searches find that place, the joint step moves one of them away, and the
-    summary pairs each target's joint answer with its own; a second run resumes with nothing to do."""
+def _two_copies_eval(scene, tmp_path: Path) -> list[str]:
+    """eval --joint's arguments on a BOP dataset whose one image holds two copies of the demo box at the same
+    pose (obj 1 and obj 2, the same mesh)."""
     d, sc = scene
     ds = tmp_path / "ds"
     scene_dir = ds / "test" / "000001"
@@ -107,6 +106,14 @@ def test_eval_joint_pairs_each_target_with_its_own_answer(scene, tmp_path, capsy
         "--refine-xy", "0.01", "--refine-yaw", "15", "--no-plots",
         "--x-range", f"{x - 0.2}", f"{x + 0.06}", "--y-range", f"{y - 0.06}", f"{y + 0.18}",
     ]  # fmt: skip
+    return args
+
+
+def test_eval_joint_pairs_each_target_with_its_own_answer(scene, tmp_path, capsys):
+    """eval --joint on a BOP dataset whose one image holds two copies of the demo box at the same pose (obj 1
+    and obj 2, the same mesh): both searches find that place, the joint step moves one of them away, and the
+    summary pairs each target's joint answer with its own; a second run resumes with nothing to do."""
+    args = _two_copies_eval(scene, tmp_path)
     assert main(args) == 0
     printed = capsys.readouterr().out
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
@@ -127,3 +134,50 @@ def test_eval_joint_pairs_each_target_with_its_own_answer(scene, tmp_path, capsy
     assert "Joint step (eval --joint): changed 1 of 2 answers" in printed
     assert main(args) == 0  # resumed: both targets journalled, nothing searched again
     assert "resuming" not in capsys.readouterr().err
+
+
+def test_eval_joint_occluders_pairs_the_second_pass_with_the_first(scene, tmp_path, capsys):
+    """eval --joint --occluders answers: each target searched again with the other target's first-pass answer
+    hiding what it covers; the journal keeps the first pass's joint answer beside the second's, the summary
+    pairs them, and eval_config.json records the option (a run without it would not resume this one)."""
+    args = [*_two_copies_eval(scene, tmp_path), "--occluders", "answers"]
+    assert main(args) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    second = summary["occluders"]
+    assert second["n"] == 2 and set(second) >= {"first_pass", "second_pass", "auc_gain_ci95"}
+    journal = [json.loads(x) for x in (tmp_path / "out" / "targets.jsonl").read_text().splitlines()]
+    for j in journal:
+        occ = j["details"]["occluders"]
+        assert occ["occluders"] == 1 and occ["beta"] == 0.25 and occ["cells_covered"] > 0
+        assert np.asarray(occ["first_R_m2c"]).shape == (3, 3) and len(occ["first_t_m2c_m"]) == 3
+    with (tmp_path / "out" / "per_target.csv").open() as f:
+        rows = list(csv.DictReader(f))
+    # The first pass is the plain joint run: one copy keeps the place, the other is moved off it.
+    assert sorted(float(r["first_adds_mm"]) < 20.0 for r in rows) == [False, True]
+    assert all(r["second_pass_changed"] in ("True", "False") for r in rows)
+    assert "Second pass (--occluders answers): changed" in printed
+    config = json.loads((tmp_path / "out" / "eval_config.json").read_text())
+    assert config["options"]["occluders"] == "answers"
+    assert main(args) == 0  # resumed: nothing searched again
+    assert "resuming" not in capsys.readouterr().err
+
+
+def test_occluders_need_several_objects_or_joint(scene, tmp_path, capsys):
+    d, sc = scene
+    assert main(_args(d, sc, 1, tmp_path / "one.json", ["--occluders", "answers"])) != 0
+    assert "--occluders answers needs several objects" in capsys.readouterr().err
+    assert not (tmp_path / "one.json").exists()
+    args = [a for a in _two_copies_eval(scene, tmp_path) if a != "--joint"]
+    assert main([*args, "--occluders", "answers"]) != 0
+    assert "--occluders answers needs --joint" in capsys.readouterr().err
+
+
+def test_two_objects_with_occluders_answers_report_both_passes(scene, tmp_path, capsys):
+    d, sc = scene
+    assert main(_args(d, sc, 2, tmp_path / "two.json", ["--occluders", "answers"])) == 0
+    printed = capsys.readouterr().out
+    two = json.loads((tmp_path / "two.json").read_text())
+    for o in two["objects"]:
+        assert o["occluders"]["occluders"] == 1 and set(o["occluders"]["first_pass"]) >= {"x_m", "y_m", "score"}
+    assert printed.count("first pass (no occluders):") == 2

@@ -14,6 +14,7 @@ from ..joint import joint_config
 from ..options import (
     add_joint_peaks_argument,
     add_method_arguments,
+    add_occluders_argument,
     add_search_arguments,
     engine_config_from_args,
     search_space_from_args,
@@ -108,6 +109,7 @@ def _add_joint_arguments(parser: argparse.ArgumentParser) -> None:
         "per target, what it changed",
     )
     add_joint_peaks_argument(j, "--joint")
+    add_occluders_argument(j, "--joint")
 
 
 def run(args: argparse.Namespace) -> int:
@@ -137,7 +139,7 @@ def run(args: argparse.Namespace) -> int:
     if args.joint:
         from .joint import joint_runner  # imports the engine (Warp): only when asked for
 
-        runner = joint_runner(make_estimator)
+        runner = joint_runner(make_estimator, args.occluders)
     command = shlex.join(["python", "-m", "perch_warp", *sys.argv[1:]])
     try:
         summary = evaluate(
@@ -175,7 +177,9 @@ def _search_options(args: argparse.Namespace) -> dict:
         options.pop("rest")
         options.pop("roll_step")
     if not args.joint:  # likewise for --joint
-        options = {k: v for k, v in options.items() if k not in ("joint", "joint_peaks")}
+        options = {k: v for k, v in options.items() if k not in ("joint", "joint_peaks", "occluders")}
+    elif args.occluders == "none":  # as before --occluders existed
+        options.pop("occluders")
     return options
 
 
@@ -196,6 +200,8 @@ def _report(summary: dict, out: Path) -> int:
 def _joint_setup(args: argparse.Namespace, config):
     """--joint's checks and its EngineConfig (every object's distinct peaks refined); config unchanged without it."""
     if not args.joint:
+        if args.occluders != "none":
+            raise PerchError(f"--occluders {args.occluders} needs --joint (the other targets' answers hide parts)")
         return config
     if args.joint_peaks < 1:
         raise PerchError(f"--joint-peaks must be at least 1, got {args.joint_peaks}")

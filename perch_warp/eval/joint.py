@@ -31,8 +31,9 @@ from .protocol import (
 )
 
 
-def joint_runner(make_estimator) -> TargetRunner:
-    """Images one after another in this process, each image's targets searched together."""
+def joint_runner(make_estimator, occluders: str = "none") -> TargetRunner:
+    """Images one after another in this process, each image's targets searched together (`occluders`:
+    perch_warp.objects' second pass with "answers")."""
 
     def run(todo, tables: TableCache, space_fn: SpaceFn, model_paths: dict[int, Path]) -> Iterator[Outcome]:
         state = {"estimator": None, "image_key": None, "image": None}
@@ -43,7 +44,7 @@ def joint_runner(make_estimator) -> TargetRunner:
             try:
                 if state["estimator"] is None:
                     state["estimator"] = make_estimator(model_paths)
-                yield from _image_outcomes(im, mine, state, tables, space_fn)
+                yield from _image_outcomes(im, mine, state, tables, space_fn, occluders)
             except Exception as e:  # noqa: BLE001 - every target of the image fails with the reason
                 if stops_the_run(e):
                     raise
@@ -53,7 +54,9 @@ def joint_runner(make_estimator) -> TargetRunner:
     return run
 
 
-def _image_outcomes(im, mine: list, state: dict, tables: TableCache, space_fn: SpaceFn) -> Iterator[Outcome]:
+def _image_outcomes(
+    im, mine: list, state: dict, tables: TableCache, space_fn: SpaceFn, occluders: str
+) -> Iterator[Outcome]:
     """The image's targets in `mine` (the others only join the joint step), or their failures."""
     jobs, failures = [], {}
     for t in im.targets:
@@ -67,14 +70,15 @@ def _image_outcomes(im, mine: list, state: dict, tables: TableCache, space_fn: S
     if not jobs:
         return
     image = _image(state, im)
-    done = estimate_image(state["estimator"], jobs, image)
+    done = estimate_image(state["estimator"], jobs, image, occluders)
     for t in mine:
         if t.key in done:
             yield t, done[t.key]
 
 
-def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray) -> dict:
-    """Done per target key: the joint answers of one image's targets (jobs: prepare_job's, one image)."""
+def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray, occluders: str = "none") -> dict:
+    """Done per target key: the joint answers of one image's targets (jobs: prepare_job's, one image);
+    with occluders "answers" the second pass's, the first pass's joint answer in details["occluders"]."""
     first = jobs[0]
     if any(j.space.describe() != first.space.describe() for j in jobs):
         raise PerchError("eval --joint needs one search region per image (a region function that ignores the object)")
@@ -84,8 +88,9 @@ def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray
     names = [f"obj {j.target.obj_id}" for j in jobs]
     t0 = time.perf_counter()
     answers, choice = estimate_objects(
-        engines, names, image_rgb, first.camera, first.table, searched, first.space, probes=probes
-    )
+        engines, names, image_rgb, first.camera, first.table, searched, first.space, probes=probes,
+        occluders=occluders,
+    )  # fmt: skip
     # Per target: the image's search time shared equally (one photo, the searches, the joint step), the
     # ground truth's cells (diagnostics) left out.
     dt = (time.perf_counter() - t0 - sum(a.result.timings["probe"] for a in answers)) / len(jobs)
@@ -105,6 +110,15 @@ def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray
             # what its own best conflicted with, when the step moved it (which answer, and why)
             "moved_by": [{"obj_id": jobs[k].target.obj_id, "why": why} for k, why in choice.moved_by(n)],
         }
+        if a.first_pass is not None:
+            f = a.first_pass.best
+            est.details["occluders"] = {
+                **a.result.info.extra.get("hidden", {}),
+                "first_R_m2c": f.T_m2c[:3, :3].tolist(),
+                "first_t_m2c_m": f.T_m2c[:3, 3].tolist(),
+                "first_score": f.score,
+                "changed": bool(np.any(f.T_m2c != a.best.T_m2c)),
+            }
         est.details["table"] = j.table_how
         _add_space_details(est.details, j.space, j.table, j.target)
         out[j.target.key] = Done(

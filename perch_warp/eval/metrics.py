@@ -130,12 +130,20 @@ def _diagnostics(d: Done) -> dict:
 
 
 def _joint_columns(d: Done, t, pts: np.ndarray) -> dict:
-    """Under eval --joint: whether the joint step changed the answer and the ADD-S of the object's own best."""
-    j = d.details.get("joint")
-    if j is None:
-        return {"joint_changed": None, "own_adds_mm": None}
-    R, tr = np.asarray(j["own_R_m2c"], dtype=np.float64), np.asarray(j["own_t_m2c_m"], dtype=np.float64)
-    return {"joint_changed": bool(j["changed"]), "own_adds_mm": 1000.0 * pose_error.add_s(R, tr, t.R_gt, t.t_gt_m, pts)}
+    """Under eval --joint: whether the joint step changed the answer and the ADD-S of the object's own best;
+    with --occluders answers, whether the second pass changed it and the first pass's joint answer's ADD-S."""
+    out = {}
+    for key, changed, adds, R, tr in (
+        ("joint", "joint_changed", "own_adds_mm", "own_R_m2c", "own_t_m2c_m"),
+        ("occluders", "second_pass_changed", "first_adds_mm", "first_R_m2c", "first_t_m2c_m"),
+    ):
+        j = d.details.get(key)
+        out[changed] = None if j is None else bool(j["changed"])
+        out[adds] = None
+        if j is not None:
+            R_m2c, t_m = np.asarray(j[R], dtype=np.float64), np.asarray(j[tr], dtype=np.float64)
+            out[adds] = 1000.0 * pose_error.add_s(R_m2c, t_m, t.R_gt, t.t_gt_m, pts)
+    return out
 
 
 _PER_TARGET_COLUMNS = [
@@ -171,6 +179,8 @@ _PER_TARGET_COLUMNS = [
     "confidence_exact",
     "joint_changed",
     "own_adds_mm",
+    "second_pass_changed",
+    "first_adds_mm",
 ]
 
 
@@ -290,7 +300,21 @@ def summarize(rows: list[dict], ds: bop.Dataset, selection: Selection) -> dict:
     joint = joint_summary(rows)
     if joint is not None:
         summary["joint"] = joint
+    second = occluders_summary(rows)
+    if second is not None:
+        summary["occluders"] = second
     return summary
+
+
+def _paired_note(j: dict, what: str, a: str, b: str) -> str:
+    """paired_summary's result in one sentence (a: the base's name, b: the answers')."""
+    better = sum(c["adds_mm"] < c[f"{a}_adds_mm"] for c in j["changed"])
+    lo, hi = j["auc_gain_ci95"]
+    return (
+        f"{what}: changed {j['n_changed']} of {j['n']} answers ({better} closer to the truth); ADD-S AUC "
+        f"{j[a]['auc']:.2f} -> {j[b]['auc']:.2f} (paired gain {j['auc_gain']:+.2f}, 95 % CI {lo:+.2f}..{hi:+.2f}); "
+        f"< 2 cm {j[a]['adds_below_2cm_pct']:.1f} -> {j[b]['adds_below_2cm_pct']:.1f} %."
+    )
 
 
 def mean_interval(values: np.ndarray, n_boot: int = 10_000, seed: int = 0) -> tuple[float, float]:
@@ -326,25 +350,37 @@ def pooled_intervals(rows: list[dict]) -> dict[str, tuple[float, float]]:
 def joint_summary(rows: list[dict]) -> dict | None:
     """eval --joint, paired per target: the objects' own answers against the joint step's (ADD-S AUC and
     < 2 cm, with 95 % bootstrap intervals of the differences), and each changed target; None otherwise."""
-    rs = [r for r in rows if r.get("own_adds_mm") is not None]
+    return paired_summary(rows, "own_adds_mm", "joint_changed", ("own", "joint"))
+
+
+def occluders_summary(rows: list[dict]) -> dict | None:
+    """eval --joint --occluders answers, paired per target: the first pass's joint answers against the
+    second pass's (what the other answers hide left out), as joint_summary; None otherwise."""
+    return paired_summary(rows, "first_adds_mm", "second_pass_changed", ("first_pass", "second_pass"))
+
+
+def paired_summary(rows: list[dict], base_col: str, changed_col: str, names: tuple[str, str]) -> dict | None:
+    """Rows' ADD-S (adds_mm) against another answer's on the same targets (base_col): AUC and < 2 cm of
+    each (names: base's, then the rows'), the paired gains with 95 % bootstrap intervals, the changed
+    targets (changed_col); None when no row has base_col."""
+    rs = [r for r in rows if r.get(base_col) is not None]
     if not rs:
         return None
-    own = np.array([r["own_adds_mm"] for r in rs]) / 1000.0
-    joint = np.array([r["adds_mm"] for r in rs]) / 1000.0
+    base = np.array([r[base_col] for r in rs]) / 1000.0
+    now = np.array([r["adds_mm"] for r in rs]) / 1000.0
 
-    d_auc = pose_error.auc_shares(joint, AUC_MAX_THRESHOLD_M) - pose_error.auc_shares(own, AUC_MAX_THRESHOLD_M)
-    d_ok = pose_error.below_shares(joint, ADDS_THRESHOLD_M) - pose_error.below_shares(own, ADDS_THRESHOLD_M)
-    changed = [r for r in rs if r["joint_changed"]]
+    d_auc = pose_error.auc_shares(now, AUC_MAX_THRESHOLD_M) - pose_error.auc_shares(base, AUC_MAX_THRESHOLD_M)
+    d_ok = pose_error.below_shares(now, ADDS_THRESHOLD_M) - pose_error.below_shares(base, ADDS_THRESHOLD_M)
+    changed = [r for r in rs if r[changed_col]]
     return {
         "n": len(rs),
         "n_changed": len(changed),
-        "own": {
-            "auc": pose_error.auc(own, AUC_MAX_THRESHOLD_M),
-            "adds_below_2cm_pct": pose_error.accuracy_below(own, ADDS_THRESHOLD_M),
-        },
-        "joint": {
-            "auc": pose_error.auc(joint, AUC_MAX_THRESHOLD_M),
-            "adds_below_2cm_pct": pose_error.accuracy_below(joint, ADDS_THRESHOLD_M),
+        **{
+            name: {
+                "auc": pose_error.auc(e, AUC_MAX_THRESHOLD_M),
+                "adds_below_2cm_pct": pose_error.accuracy_below(e, ADDS_THRESHOLD_M),
+            }
+            for name, e in zip(names, (base, now), strict=True)
         },
         "auc_gain": float(d_auc.mean()),
         "auc_gain_ci95": mean_interval(d_auc),
@@ -354,7 +390,7 @@ def joint_summary(rows: list[dict]) -> dict | None:
             {
                 "key": [r["scene_id"], r["im_id"], r["inst"]],
                 "obj_id": r["obj_id"],
-                "own_adds_mm": r["own_adds_mm"],
+                f"{names[0]}_adds_mm": r[base_col],
                 "adds_mm": r["adds_mm"],
             }
             for r in changed
@@ -483,15 +519,12 @@ def _table_notes(summary: dict, fmt) -> list[str]:
             f"{fmt(sep['top50_accuracy_pct'], '.1f')} % right, 80 %: {fmt(sep['top80_accuracy_pct'], '.1f')} %, "
             f"all: {fmt(sep['accuracy_pct'], '.1f')} %; ROC AUC {auc} (n = {sep['n']})."
         )
-    joint = summary.get("joint")
-    if joint:
-        better = sum(c["adds_mm"] < c["own_adds_mm"] for c in joint["changed"])
-        notes.append(
-            f"Joint step (eval --joint): changed {joint['n_changed']} of {joint['n']} answers ({better} closer to the "
-            f"truth); ADD-S AUC {joint['own']['auc']:.2f} -> {joint['joint']['auc']:.2f} (paired gain "
-            f"{joint['auc_gain']:+.2f}, 95 % CI {joint['auc_gain_ci95'][0]:+.2f}..{joint['auc_gain_ci95'][1]:+.2f}); "
-            f"< 2 cm {joint['own']['adds_below_2cm_pct']:.1f} -> {joint['joint']['adds_below_2cm_pct']:.1f} %."
-        )
+    for key, what, a, b in (
+        ("joint", "Joint step (eval --joint)", "own", "joint"),
+        ("occluders", "Second pass (--occluders answers)", "first_pass", "second_pass"),
+    ):
+        if summary.get(key):
+            notes.append(_paired_note(summary[key], what, a, b))
     outside = p.get("gt_outside_region") if p else 0
     if outside:
         notes.append(f"{outside} targets lie outside their search region.")

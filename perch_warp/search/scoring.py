@@ -26,12 +26,13 @@ from ..camera import Camera
 from ..errors import PerchError
 from ..features import FeatureWeights
 from ..footing import footing, footprint_radius_m, likeness_map
+from ..hidden import HiddenPoints, hide
 from ..image import check_rgb
 from ..kernels.features import NOT_ON_MASK, PointWeights
 from ..kernels.render import Shading
 from ..outline import edge_ceiling, edge_map
 from ..rarity import rarity_and_labels, unit_responses
-from ..render import MIN_DEPTH_M, BoxProjector, Renderer
+from ..render import MIN_DEPTH_M, BoxProjector, Renderer, point_layout
 from ..score import (
     FeatureScorer,
     best_over_shifts,
@@ -227,6 +228,20 @@ class ScoringService:
     renderer: Renderer  # the form of kernel #1 this search uses
     timings: dict = dataclasses.field(default_factory=dict)
     bar: object = None  # a tqdm bar or None
+    # What other objects hide (perch_warp.hidden): their points are left out of the score and its bound.
+    hidden: HiddenPoints | None = None
+
+    def __post_init__(self) -> None:
+        if self.hidden is not None and tuple(self.hidden.near_m.shape) != (self.photo.rows, self.photo.cols):
+            raise PerchError(
+                f"the occluder map is {self.hidden.near_m.shape} cells but the photo's feature grid is "
+                f"{(self.photo.rows, self.photo.cols)}: make it on this photo's grid (after image_scale)"
+            )
+
+    @property
+    def beta(self) -> float:
+        """The reduction's beta (kernels/reduce.py): 0 without hidden points, where it plays no part."""
+        return 0.0 if self.hidden is None else self.hidden.beta
 
     def quiet(self, timings: dict | None = None) -> ScoringService:
         """The same service without a progress bar, its stage seconds into `timings` (a new dict by default)."""
@@ -345,9 +360,14 @@ class ScoringService:
         laps: dict[str, float] = {}
         vals, pt_off = self._point_values(c, shifts, gains, tone, idx, laps)
         t = time.perf_counter()
-        # The same kernel on every device, so CPU and GPU runs take the same path to a score.
         n_blocks = shifts.shape[0] * gains.shape[0] * len(tone)
-        batch_scores, _ = top_alpha_mean_device(vals, pt_off, self.config.alpha, self.terms.shrink, n_blocks)
+        if self.hidden is not None:
+            ks, stride = self.backends.weights.kernel_size, self.config.stride
+            pts = point_layout(c.boxes[idx], c.gboxes[idx], ks, stride, self.device)
+            hide(vals, pts, np.linalg.norm(c.tr[idx], axis=1), self.hidden, n_blocks)
+        # The same kernel on every device, so CPU and GPU runs take the same path to a score.
+        cfg = self.config
+        batch_scores, _ = top_alpha_mean_device(vals, pt_off, cfg.alpha, self.terms.shrink, n_blocks, self.beta)
         t = self.lap("reduction", t, laps)
         # One float per candidate (and shift and gain) crosses to the host, not every feature point.
         out = best_over_shifts(batch_scores.numpy(), n_blocks)
@@ -445,6 +465,7 @@ class ScoringService:
             cfg.stride,
             cfg.alpha,
             self.terms.shrink,
+            self.hidden,
         )
         self.lap("bound", t, laps)
         return out, laps
