@@ -152,9 +152,9 @@ def _object_line(o: ObjectSpec, a: ObjectAnswer) -> str:
 def first_pass_line(a: ObjectAnswer) -> str:
     """Where the first pass (no occluders) put the object, against the answer with the others hiding parts."""
     f, b = a.first_pass.best, a.best
-    moved_cm = 100.0 * math.hypot(b.x_m - f.x_m, b.y_m - f.y_m)
-    if moved_cm < 0.05 and abs(b.yaw_rad - f.yaw_rad) < 1e-6:
+    if (f.x_m, f.y_m, f.yaw_rad, f.rest) == (b.x_m, b.y_m, b.yaw_rad, b.rest):
         return f"first pass (no occluders): the same pose, score {f.score:.4f}"
+    moved_cm = 100.0 * math.hypot(b.x_m - f.x_m, b.y_m - f.y_m)
     return (
         f"first pass (no occluders): x = {f.x_m:+.4f} m, y = {f.y_m:+.4f} m, yaw = {math.degrees(f.yaw_rad):.1f} deg, "
         f"score {f.score:.4f} ({moved_cm:.1f} cm from this answer)"

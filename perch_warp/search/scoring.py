@@ -402,7 +402,8 @@ class ScoringService:
         (`refining()`, no shift tolerance) and without the exposure or tone variants. A place's table
         term (c.prior) is added to a score after the reduction and is not among them. With `pixels`,
         each pose's entry is (values, uv): uv (n, 2) int32 the points' photo pixels (column, row), so
-        that a study can tell which points another object hides."""
+        that a study can tell which points another object hides. The service's hidden points
+        (perch_warp.hidden) are not marked here: every value is the point's own."""
         shifts, gains, tone = self._variants()
         if shifts.shape[0] * gains.shape[0] * len(tone) != 1:
             raise PerchError(
