@@ -91,9 +91,10 @@ def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray
         engines, names, image_rgb, first.camera, first.table, searched, first.space, probes=probes,
         occluders=occluders,
     )  # fmt: skip
-    # Per target: the image's search time shared equally (one photo, the searches, the joint step), the
-    # ground truth's cells (diagnostics) left out.
-    dt = (time.perf_counter() - t0 - sum(a.result.timings["probe"] for a in answers)) / len(jobs)
+    # Per target: the image's search time shared equally (one photo, the searches of both passes, the joint
+    # steps), the ground truth's cells (diagnostics, probed in each pass) left out.
+    passes = [a.result for a in answers] + [a.first_pass.result for a in answers if a.first_pass is not None]
+    dt = (time.perf_counter() - t0 - sum(r.timings["probe"] for r in passes)) / len(jobs)
     out = {}
     for n, (j, e, a) in enumerate(zip(jobs, engines, answers, strict=True)):
         est = estimator.estimate_of(e, a.result, j.camera, a.best)
