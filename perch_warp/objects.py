@@ -54,6 +54,12 @@ class ObjectAnswer:
         """Whether the joint step moved this object away from its own best."""
         return self.pick != 0
 
+    @property
+    def second_pass_changed(self) -> bool:
+        """With a first pass (occluders "answers"): whether this answer differs from the first pass's."""
+        f, b = self.first_pass.best, self.best
+        return (f.x_m, f.y_m, f.yaw_rad, f.rest) != (b.x_m, b.y_m, b.yaw_rad, b.rest)
+
 
 def refined_peaks(result: Result) -> list[Candidate]:
     """The object's distinct refined peaks, best first: the first entries of its top-k (search.refine)."""

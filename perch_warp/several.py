@@ -152,7 +152,7 @@ def _object_line(o: ObjectSpec, a: ObjectAnswer) -> str:
 def first_pass_line(a: ObjectAnswer) -> str:
     """Where the first pass (no occluders) put the object, against the answer with the others hiding parts."""
     f, b = a.first_pass.best, a.best
-    if (f.x_m, f.y_m, f.yaw_rad, f.rest) == (b.x_m, b.y_m, b.yaw_rad, b.rest):
+    if not a.second_pass_changed:
         return f"first pass (no occluders): the same pose, score {f.score:.4f}"
     moved_cm = 100.0 * math.hypot(b.x_m - f.x_m, b.y_m - f.y_m)
     return (

@@ -72,7 +72,7 @@ from perch_warp.features import load_feature_weights
 from perch_warp.image import load_rgb
 from perch_warp.mesh import load_mesh
 from perch_warp.outputs import atomic_write, atomic_write_text
-from perch_warp.score import alpha_count
+from perch_warp.score import alpha_count, hidden_count
 from perch_warp.score_map import ScoreMap
 from perch_warp.score_terms import DEFAULT_SCORE
 from perch_warp.search_space import SearchSpace
@@ -589,7 +589,7 @@ def hidden_top_mean(values: np.ndarray, hidden: np.ndarray, beta: float, alpha: 
     vis = np.sort(np.asarray(values, dtype=np.float64)[~np.asarray(hidden, dtype=bool)])[::-1]
     if not len(vis):
         return -math.inf
-    k = alpha_count(alpha, max(len(vis), math.ceil(beta * len(values))))
+    k = alpha_count(alpha, hidden_count(beta, len(vis), len(values)))  # the engine's count (kernels/reduce.py)
     return float(vis[:k].sum() / k)
 
 

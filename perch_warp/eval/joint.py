@@ -118,7 +118,7 @@ def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray
                 "first_R_m2c": f.T_m2c[:3, :3].tolist(),
                 "first_t_m2c_m": f.T_m2c[:3, 3].tolist(),
                 "first_score": f.score,
-                "changed": bool(np.any(f.T_m2c != a.best.T_m2c)),
+                "changed": a.second_pass_changed,
             }
         est.details["table"] = j.table_how
         _add_space_details(est.details, j.space, j.table, j.target)
