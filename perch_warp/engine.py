@@ -12,6 +12,7 @@ refinement (search.refine), and assembles the Result.
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from typing import NamedTuple
@@ -39,6 +40,7 @@ from .score_map import ScoreMap, knowledge, score_map, score_map_over_rests
 from .score_terms import parse_score
 from .search import rests as over_rests
 from .search.base import Outcome, top_indices
+from .search.known import KnownScores
 from .search.refine import probe as probe_cell
 from .search.refine import refine_peaks
 from .search.scoring import Backends, Photo, ScoringService, cpu_threads, photo_on_device
@@ -196,12 +198,12 @@ class Engine:
 
     def _service(
         self, image_rgb, camera, table, resting, renderer: Renderer, timings: dict, bar, photo: Photo | None = None,
-        hidden: HiddenPoints | None = None,
+        hidden: HiddenPoints | None = None, known: KnownScores | None = None,
     ) -> ScoringService:  # fmt: skip
         backends = self._backends()
         if photo is None:
             photo = photo_on_device(backends, self.config, self.terms, image_rgb, camera, timings)
-        args = (photo, camera, table, resting, renderer, timings, bar, hidden)
+        args = (photo, camera, table, resting, renderer, timings, bar, hidden, known)
         return ScoringService(backends, self.config, self.terms, *args)
 
     def estimate(
@@ -216,6 +218,7 @@ class Engine:
         probe_resting: RestingPose | None = None,
         photo: Photo | None = None,
         hidden: HiddenPoints | None = None,
+        known: KnownScores | None = None,
     ) -> Result:
         """Best (x, y, yaw) of the object in the photo; see the module doc for the stages.
 
@@ -227,11 +230,16 @@ class Engine:
         winning resting pose), in info.extra["probe"]; it never changes the answer. `photo`: this photo's
         features and rarity from `Engine.photo` (several objects in one photo), else computed here.
         `hidden`: what other objects hide in this photo (perch_warp.hidden, on the photo's grid after
-        image_scale: `Engine.hidden_by`), left out of every score and bound; recorded in info.extra["hidden"]."""
+        image_scale: `Engine.hidden_by`), left out of every score and bound; recorded in info.extra["hidden"].
+        `known`: this object's plain scores in this photo (`photo` must be given) kept by an earlier search
+        (search/known.py): taken where no point can be hidden instead of scored, the same scores bit for
+        bit; this search's plain scores are kept there in turn. How many: info.extra["known"]."""
+        if known is not None and photo is None:
+            raise PerchError("known scores need the photo they were scored on: pass photo= (Engine.photo)")
         if not isinstance(resting, RestingPose):
             rests = list(resting)
             return self._estimate_rests(
-                image_rgb, camera, table, rests, space, progress, probe, probe_resting, photo, hidden
+                image_rgb, camera, table, rests, space, progress, probe, probe_resting, photo, hidden, known
             )
         timings: dict[str, float] = {}
         image_rgb, camera = self._scaled(image_rgb, camera)
@@ -239,13 +247,20 @@ class Engine:
         bar = _bar(progress, f"search on {self.device}")
         t_start = time.perf_counter()
         try:
-            service = self._service(image_rgb, camera, table, resting, choice.renderer, timings, bar, photo, hidden)
+            service = self._service(
+                image_rgb, camera, table, resting, choice.renderer, timings, bar, photo, hidden, known
+            )
+            before = None if known is None else known.to_dict()
             out, top = self._search(service, space)
             assessed = self._assess(service, space, out, top[0][:3], resting)
+            if known is not None:
+                out.extra["known"] = _counted(known, before)
             # Wall time: with several CPU threads the per-batch stages are CPU times and sum to more.
             wall_s = time.perf_counter() - t_start
             if probe is not None:  # a diagnostic: timed apart, not part of the search's total
                 t_probe = time.perf_counter()
+                # Scored apart from the known scores, so the diagnostic never speeds a later search.
+                service = dataclasses.replace(service, known=None)
                 out.extra["probe"] = probe_cell(service, space, probe, self.search)
                 timings["probe"] = time.perf_counter() - t_probe
         finally:
@@ -346,7 +361,7 @@ class Engine:
         return Result(cands[0], cands, n, n_scored, timings, self.device, info, confidence=conf, heatmap=smap)
 
     def _estimate_rests(
-        self, image_rgb, camera, table, rests: list[Rest], space, progress, probe, probe_resting, photo, hidden
+        self, image_rgb, camera, table, rests: list[Rest], space, progress, probe, probe_resting, photo, hidden, known
     ):
         """`estimate` over several resting poses (search/rests.py), on one scoring service."""
         if not rests:
@@ -358,7 +373,10 @@ class Engine:
         bar = _bar(progress, f"search on {self.device}")
         t_start = time.perf_counter()
         try:
-            first = self._service(image_rgb, camera, table, rests[0].pose, choice.renderer, timings, bar, photo, hidden)
+            first = self._service(
+                image_rgb, camera, table, rests[0].pose, choice.renderer, timings, bar, photo, hidden, known
+            )
+            before = None if known is None else known.to_dict()
             services = [over_rests.with_rest(first, r.pose) for r in rests]
             outs = over_rests.search_all(services, space, self.search, [r.label for r in rests])
             top = over_rests.joint_top(outs, space, self.config)
@@ -370,10 +388,12 @@ class Engine:
             top = top[: self.config.top_k]
             won = top[0][4]  # the confidence over the winning resting pose's grid; the heat map over all
             assessed = self._assess(services[won], space, outs[won], top[0][:3], rests[won].pose, over=outs)
+            if known is not None:
+                extra["known"] = _counted(known, before)
             wall_s = time.perf_counter() - t_start
             if probe is not None:  # a diagnostic: timed apart, not part of the search's total
                 t_probe = time.perf_counter()
-                service = over_rests.with_rest(first, probe_resting or rests[won].pose)
+                service = over_rests.with_rest(dataclasses.replace(first, known=None), probe_resting or rests[won].pose)
                 extra["probe"] = probe_cell(service, space, probe, self.search)
                 timings["probe"] = time.perf_counter() - t_probe
         finally:
@@ -440,6 +460,12 @@ class Engine:
         if self.config.image_scale != 1.0:
             return _rescale(check_rgb(image_rgb), camera, self.config.image_scale)
         return image_rgb, camera
+
+
+def _counted(known: KnownScores, before: dict) -> dict:
+    """What one search took from and kept in its known scores (search/known.py), the probe left out."""
+    now = known.to_dict()
+    return {k: now[k] - before[k] for k in now}
 
 
 def _bar(progress: bool, desc: str):

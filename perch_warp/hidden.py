@@ -16,6 +16,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass
+from functools import cached_property
 
 import numpy as np
 import warp as wp
@@ -42,6 +43,62 @@ class HiddenPoints:
     def to_dict(self) -> dict:
         covered = int(np.isfinite(self.near_m.numpy()).sum())
         return {"occluders": self.occluders, "beta": self.beta, "cells_covered": covered}
+
+    @cached_property
+    def _minima(self) -> BoxMinima:
+        return BoxMinima(self.near_m.numpy())
+
+    def untouched(self, gboxes: np.ndarray, distance_m: np.ndarray) -> np.ndarray:
+        """(N,) bool: candidates none of whose feature points the map can hide. gboxes (N, 4) are their
+        feature-grid boxes (gx0, gy0, gw, gh: every point lies in its box), distance_m (N,) their model
+        origins' distances from the camera, as `hide` takes them. True where no cell of the box (within the
+        grid) holds an occluder nearer than the candidate: the kernel's own float32 test over a superset
+        of the points, so an untouched candidate's score is the plain score (kernels/reduce.py)."""
+        return ~(self._minima.least(gboxes) < np.asarray(distance_m, dtype=np.float32))
+
+
+class BoxMinima:
+    """The least value of a 2-D map over axis-aligned boxes, each in O(1) (a sparse table: minima over
+    every 2^a x 2^b block, the four blocks that cover a box overlap inside it)."""
+
+    def __init__(self, values: np.ndarray) -> None:
+        v = np.asarray(values, dtype=np.float32)
+        if v.ndim != 2:
+            raise PerchError(f"BoxMinima takes a 2-D map, got shape {v.shape}")
+        self.shape = v.shape
+        rows = [v]  # rows[a][r, c] = min of v[r : r + 2^a, c] (+inf past the edge)
+        while (2 << (len(rows) - 1)) <= v.shape[0]:
+            prev, h = rows[-1], 1 << (len(rows) - 1)
+            nxt = np.full_like(prev, np.inf)
+            nxt[:-h] = np.minimum(prev[:-h], prev[h:])
+            rows.append(nxt)
+        table = []  # table[a][b][r, c] = min of v[r : r + 2^a, c : c + 2^b]
+        for r in rows:
+            cols = [r]
+            while (2 << (len(cols) - 1)) <= v.shape[1]:
+                prev, w = cols[-1], 1 << (len(cols) - 1)
+                nxt = np.full_like(prev, np.inf)
+                nxt[:, :-w] = np.minimum(prev[:, :-w], prev[:, w:])
+                cols.append(nxt)
+            table.append(np.stack(cols))
+        self.table = np.stack(table)  # (A, B, rows, cols)
+
+    def least(self, boxes: np.ndarray) -> np.ndarray:
+        """(N,) float32: the least value within each box (x0, y0, w, h) cut to the map; +inf where the
+        cut box is empty."""
+        b = np.asarray(boxes, dtype=np.int64).reshape(-1, 4)
+        n_rows, n_cols = self.shape
+        x0, y0 = np.clip(b[:, 0], 0, n_cols), np.clip(b[:, 1], 0, n_rows)
+        x1, y1 = np.clip(b[:, 0] + b[:, 2], 0, n_cols), np.clip(b[:, 1] + b[:, 3], 0, n_rows)
+        out = np.full(len(b), np.inf, dtype=np.float32)
+        ok = (x1 > x0) & (y1 > y0)
+        x0, y0, x1, y1 = x0[ok], y0[ok], x1[ok], y1[ok]
+        a = np.frexp((y1 - y0).astype(np.float64))[1] - 1  # floor(log2 h), exactly
+        c = np.frexp((x1 - x0).astype(np.float64))[1] - 1
+        ya, xc = y1 - (1 << a), x1 - (1 << c)
+        t = self.table
+        out[ok] = np.minimum(np.minimum(t[a, c, y0, x0], t[a, c, ya, x0]), np.minimum(t[a, c, y0, xc], t[a, c, ya, xc]))
+        return out
 
 
 def occluder_map(

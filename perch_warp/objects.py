@@ -11,7 +11,9 @@ first-pass answers as occluders (perch_warp.hidden: its points they cover, neare
 out of its score and bound), then the joint step chooses again. That pass needs no rule against one
 region explained twice (the hidden-share conflict of perch_warp.joint): what a nearer answer covers no
 longer counts for the farther object. The occluders are the first pass's answers; one second pass, not
-iterated.
+iterated. The first pass keeps each object's scores (perch_warp.search.known) and the second scores
+anew only the candidates an answer can hide: the same answers as scoring every candidate again, bit
+for bit, at the touched candidates' cost.
 """
 
 from __future__ import annotations
@@ -27,6 +29,7 @@ from .engine import Engine
 from .errors import PerchError
 from .hidden import DEFAULT_BETA
 from .result import Candidate, Result
+from .search.known import KnownScores
 from .search_space import SearchSpace
 from .table import Table
 
@@ -98,19 +101,22 @@ def estimate_objects(
     photo = first.photo(image_rgb, camera)
     probes = probes if probes is not None else [{}] * len(engines)
 
+    second = occluders == "answers" and len(engines) > 1
+    known = [KnownScores(photo) if second else None for _ in engines]
+
     def search(hidden: list | None) -> list[ObjectAnswer]:
         out = []
         for n, (engine, name, resting) in enumerate(zip(engines, names, restings, strict=True)):
             result = engine.estimate(
                 image_rgb, camera, table, resting, space, progress=progress, photo=photo,
-                hidden=None if hidden is None else hidden[n], **probes[n],
+                hidden=None if hidden is None else hidden[n], known=known[n], **probes[n],
             )  # fmt: skip
             out.append(ObjectAnswer(name, result, refined_peaks(result), 0))
         return out
 
     answers = search(None)
     choice = _pick(answers, choose_jointly(engines, answers, camera, table, overlap_m))
-    if occluders == "answers" and len(engines) > 1:
+    if second:
         hidden = [
             e.hidden_by(camera, [(engines[j], a.best.T_m2c) for j, a in enumerate(answers) if j != n], beta)
             for n, e in enumerate(engines)

@@ -136,7 +136,11 @@ def _object_entry(o: ObjectSpec, a: ObjectAnswer, rests: list, mode: str) -> dic
         "peaks": [c.to_dict() for c in a.peaks],
     }
     if a.first_pass is not None:  # --occluders answers: the second pass's record and the first's answer
-        entry["occluders"] = {**a.result.info.extra.get("hidden", {}), "first_pass": a.first_pass.best.to_dict()}
+        entry["occluders"] = {
+            **a.result.info.extra.get("hidden", {}),
+            **a.result.info.extra.get("known", {}),
+            "first_pass": a.first_pass.best.to_dict(),
+        }
     return entry
 
 

@@ -151,6 +151,8 @@ def test_eval_joint_occluders_pairs_the_second_pass_with_the_first(scene, tmp_pa
         occ = j["details"]["occluders"]
         assert occ["occluders"] == 1 and occ["beta"] == 0.25 and occ["cells_covered"] > 0
         assert np.asarray(occ["first_R_m2c"]).shape == (3, 3) and len(occ["first_t_m2c_m"]) == 3
+        # The second pass took the first pass's scores where the other answer hides nothing.
+        assert occ["scores_reused"] > 0 and occ["first_total_s"] > 0
     with (tmp_path / "out" / "per_target.csv").open() as f:
         rows = list(csv.DictReader(f))
     # The first pass is the plain joint run: one copy keeps the place, the other is moved off it.
@@ -180,4 +182,5 @@ def test_two_objects_with_occluders_answers_report_both_passes(scene, tmp_path, 
     two = json.loads((tmp_path / "two.json").read_text())
     for o in two["objects"]:
         assert o["occluders"]["occluders"] == 1 and set(o["occluders"]["first_pass"]) >= {"x_m", "y_m", "score"}
+        assert o["occluders"]["scores_reused"] > 0
     assert printed.count("first pass (no occluders):") == 2

@@ -119,6 +119,9 @@ def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray
                 "first_t_m2c_m": f.T_m2c[:3, 3].tolist(),
                 "first_score": f.score,
                 "changed": a.second_pass_changed,
+                # the cost of each pass's own search (probe left out) and the first pass's scores reused
+                "first_total_s": a.first_pass.result.timings["total"],
+                **a.result.info.extra.get("known", {}),
             }
         est.details["table"] = j.table_how
         _add_space_details(est.details, j.space, j.table, j.target)

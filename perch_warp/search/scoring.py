@@ -44,6 +44,7 @@ from ..score import (
 from ..score_terms import ScoreTerms, background_offset, tone_gains
 from ..search_space import SearchSpace
 from ..table import RestingPose, Table, model_to_camera
+from .known import KnownScores
 
 # Candidates whose poses and boxes are set up at once (host and device memory): a search keeps
 # a few numbers per candidate of its space (score, bound, box size) and nothing larger, so no
@@ -230,6 +231,9 @@ class ScoringService:
     bar: object = None  # a tqdm bar or None
     # What other objects hide (perch_warp.hidden): their points are left out of the score and its bound.
     hidden: HiddenPoints | None = None
+    # Plain scores and bounds of this object in this photo kept by an earlier search (search/known.py):
+    # taken where no point can be hidden, and this search's plain values kept there in turn.
+    known: KnownScores | None = None
 
     def __post_init__(self) -> None:
         if self.hidden is not None and tuple(self.hidden.near_m.shape) != (self.photo.rows, self.photo.cols):
@@ -333,21 +337,52 @@ class ScoringService:
         return self.candidates(*poses.at(idx))
 
     def score_some(self, c: Candidates, idx, out: np.ndarray, stats: SearchStats, progress: bool = True) -> None:
-        """out[idx] = the scores of candidates idx of c (render, features, top-α), in batches."""
-        sizes = c.boxes[idx, 2].astype(np.int64) * c.boxes[idx, 3]
+        """out[idx] = the scores of candidates idx of c (render, features, top-α), in batches; with known
+        scores (search/known.py), those of candidates no hidden point can touch are taken, not scored."""
+        idx = np.asarray(idx, dtype=np.int64)
+        bar = self.bar if progress else None
+        todo = self._take_known("score", c, idx, out)
+        if bar is not None and len(todo) < len(idx):
+            bar.update(len(idx) - len(todo))
+        sizes = c.boxes[todo, 2].astype(np.int64) * c.boxes[todo, 3]
         stats.rays += int(sizes.sum())
         work = functools.partial(self._score_batch, c, *self._variants())
-        self._batched(work, idx, sizes, out, stats, self.bar if progress else None)
+        self._batched(work, todo, sizes, out, stats, bar)
+        self._keep_known("score", c, todo, out)
         if c.prior is not None:
             out[idx] += c.prior[idx]
 
+    def _take_known(self, kind: str, c: Candidates, idx: np.ndarray, out: np.ndarray) -> np.ndarray:
+        """out[i] = the known plain value (search/known.py) of each candidate i of idx that no hidden point
+        can touch, where one is known; returns the rest of idx, in order, to compute."""
+        if self.known is None:
+            return idx
+        taken = self.known.take(self, kind, c.R, c.tr, out, idx[self._plain(c, idx)])
+        return idx[~np.isin(idx, taken)] if len(taken) else idx
+
+    def _keep_known(self, kind: str, c: Candidates, idx: np.ndarray, out: np.ndarray) -> None:
+        """Keep the computed values out[idx] of the candidates whose value is the plain one; before the
+        place's own term, which is added per call."""
+        if self.known is not None:
+            self.known.keep(self, kind, c.R, c.tr, out, idx[self._plain(c, idx)])
+
+    def _plain(self, c: Candidates, idx: np.ndarray) -> np.ndarray:
+        """(len(idx),) bool: candidates idx of c whose score is the plain one (no point can be hidden)."""
+        if self.hidden is None:
+            return np.ones(len(idx), dtype=bool)
+        return self.hidden.untouched(c.gboxes[idx], np.linalg.norm(c.tr[idx], axis=1))
+
     def bound_some(self, c: Candidates, idx, out: np.ndarray, stats: SearchStats) -> None:
-        """out[idx] = the silhouette bounds of candidates idx of c (perch_warp.bound), in batches."""
-        sizes = c.gboxes[idx, 2].astype(np.int64) * c.gboxes[idx, 3]  # one ray per feature point
+        """out[idx] = the silhouette bounds of candidates idx of c (perch_warp.bound), in batches; with
+        known values (search/known.py), those of candidates no hidden point can touch are taken."""
+        idx = np.asarray(idx, dtype=np.int64)
+        todo = self._take_known("bound", c, idx, out)
+        sizes = c.gboxes[todo, 2].astype(np.int64) * c.gboxes[todo, 3]  # one ray per feature point
         stats.bound_rays += int(sizes.sum())
         # Pooled here, once, not by the batches' threads.
         work = functools.partial(self._bound_batch, c, self.photo.ceiling_within(self.terms.shift))
-        self._batched(work, idx, sizes, out, stats, None)
+        self._batched(work, todo, sizes, out, stats, None)
+        self._keep_known("bound", c, todo, out)
         if c.prior is not None:  # the place's own term, exactly: the bound stays as tight
             out[idx] += c.prior[idx]
 
