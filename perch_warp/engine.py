@@ -231,9 +231,10 @@ class Engine:
         features and rarity from `Engine.photo` (several objects in one photo), else computed here.
         `hidden`: what other objects hide in this photo (perch_warp.hidden, on the photo's grid after
         image_scale: `Engine.hidden_by`), left out of every score and bound; recorded in info.extra["hidden"].
-        `known`: this object's plain scores in this photo (`photo` must be given) kept by an earlier search
-        (search/known.py): taken where no point can be hidden instead of scored, the same scores bit for
-        bit; this search's plain scores are kept there in turn. How many: info.extra["known"]."""
+        `known`: this object's plain scores and bounds in this photo (`photo` must be given) kept by an
+        earlier search (search/known.py): taken where no point can be hidden instead of computed, the
+        same values bit for bit; this search's plain values are kept there in turn. How many:
+        info.extra["known"]."""
         if known is not None and photo is None:
             raise PerchError("known scores need the photo they were scored on: pass photo= (Engine.photo)")
         if not isinstance(resting, RestingPose):

@@ -329,8 +329,8 @@ def add_occluders_argument(p, when: str) -> None:
         choices=("none", "answers"),
         default="none",
         help=f"{when}: 'answers' searches each object a second time with the other objects' answers as "
-        "occluders: its points they cover, nearer the camera, are left out of its score (about twice the "
-        "search time; perch_warp.hidden); default: none",
+        "occluders: its points they cover, nearer the camera, are left out of its score (perch_warp.hidden); "
+        "the second search re-scores only the candidates they can hide (perch_warp.search.known); default: none",
     )
 
 
