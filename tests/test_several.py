@@ -159,6 +159,10 @@ def test_eval_joint_occluders_pairs_the_second_pass_with_the_first(scene, tmp_pa
     assert sorted(float(r["first_adds_mm"]) < 20.0 for r in rows) == [False, True]
     assert all(r["second_pass_changed"] in ("True", "False") for r in rows)
     assert "Second pass (--occluders answers): changed" in printed
+    cost = second["cost"]  # each pass's own search time, from the journal
+    assert cost["n"] == 2 and cost["first_pass_s"] == pytest.approx(sum(float(r["first_pass_s"]) for r in rows))
+    assert cost["second_pass_s"] == pytest.approx(sum(j["details"]["timings_s"]["total"] for j in journal))
+    assert "Second pass cost: its searches took" in printed
     config = json.loads((tmp_path / "out" / "eval_config.json").read_text())
     assert config["options"]["occluders"] == "answers"
     assert main(args) == 0  # resumed: nothing searched again

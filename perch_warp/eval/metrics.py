@@ -143,6 +143,10 @@ def _joint_columns(d: Done, t, pts: np.ndarray) -> dict:
         if j is not None:
             R_m2c, t_m = np.asarray(j[R], dtype=np.float64), np.asarray(j[tr], dtype=np.float64)
             out[adds] = 1000.0 * pose_error.add_s(R_m2c, t_m, t.R_gt, t.t_gt_m, pts)
+    # Each pass's own search time (journals from before stop 59 lack the first pass's)
+    occ = d.details.get("occluders") or {}
+    out["first_pass_s"] = occ.get("first_total_s")
+    out["second_pass_s"] = d.details.get("timings_s", {}).get("total") if "first_total_s" in occ else None
     return out
 
 
@@ -181,6 +185,8 @@ _PER_TARGET_COLUMNS = [
     "own_adds_mm",
     "second_pass_changed",
     "first_adds_mm",
+    "first_pass_s",
+    "second_pass_s",
 ]
 
 
@@ -355,8 +361,17 @@ def joint_summary(rows: list[dict]) -> dict | None:
 
 def occluders_summary(rows: list[dict]) -> dict | None:
     """eval --joint --occluders answers, paired per target: the first pass's joint answers against the
-    second pass's (what the other answers hide left out), as joint_summary; None otherwise."""
-    return paired_summary(rows, "first_adds_mm", "second_pass_changed", ("first_pass", "second_pass"))
+    second pass's (what the other answers hide left out), as joint_summary, and what each pass's own
+    searches cost over the targets whose journal has both times ("cost"); None otherwise."""
+    out = paired_summary(rows, "first_adds_mm", "second_pass_changed", ("first_pass", "second_pass"))
+    timed = [r for r in rows if r.get("first_pass_s") is not None and r.get("second_pass_s") is not None]
+    if out is not None and timed:
+        out["cost"] = {
+            "n": len(timed),
+            "first_pass_s": float(sum(r["first_pass_s"] for r in timed)),
+            "second_pass_s": float(sum(r["second_pass_s"] for r in timed)),
+        }
+    return out
 
 
 def paired_summary(rows: list[dict], base_col: str, changed_col: str, names: tuple[str, str]) -> dict | None:
@@ -525,6 +540,13 @@ def _table_notes(summary: dict, fmt) -> list[str]:
     ):
         if summary.get(key):
             notes.append(_paired_note(summary[key], what, a, b))
+    cost = (summary.get("occluders") or {}).get("cost")
+    if cost:
+        share = 100.0 * cost["second_pass_s"] / cost["first_pass_s"] if cost["first_pass_s"] > 0 else float("nan")
+        notes.append(
+            f"Second pass cost: its searches took {cost['second_pass_s']:.0f} s against the first pass's "
+            f"{cost['first_pass_s']:.0f} s ({share:.0f} %) over {cost['n']} targets."
+        )
     outside = p.get("gt_outside_region") if p else 0
     if outside:
         notes.append(f"{outside} targets lie outside their search region.")
