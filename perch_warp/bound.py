@@ -54,7 +54,7 @@ def silhouette_points(
             outputs=[out],
         )
     if hidden is not None:
-        hide(out, layout, np.linalg.norm(t_m2c_m, axis=1), hidden, 1)
+        hide(out, layout, t_m2c_m, hidden, 1)
     return out, layout.pt_off
 
 

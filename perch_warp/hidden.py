@@ -48,13 +48,14 @@ class HiddenPoints:
     def _minima(self) -> BoxMinima:
         return BoxMinima(self.near_m.numpy())
 
-    def untouched(self, gboxes: np.ndarray, distance_m: np.ndarray) -> np.ndarray:
+    def untouched(self, gboxes: np.ndarray, t_m2c_m: np.ndarray) -> np.ndarray:
         """(N,) bool: candidates none of whose feature points the map can hide. gboxes (N, 4) are their
-        feature-grid boxes (gx0, gy0, gw, gh: every point lies in its box), distance_m (N,) their model
-        origins' distances from the camera, as `hide` takes them. True where no cell of the box (within the
-        grid) holds an occluder nearer than the candidate: the kernel's own float32 test over a superset
-        of the points, so an untouched candidate's score is the plain score (kernels/reduce.py)."""
-        return ~(self._minima.least(gboxes) < np.asarray(distance_m, dtype=np.float32))
+        feature-grid boxes (gx0, gy0, gw, gh: every point lies in its box), t_m2c_m (N, 3) their
+        model-to-camera translations (metres), as `hide` takes them. True where no cell of the box (within
+        the grid) holds an occluder nearer than the candidate (`origin_distance_m`): the kernel's own
+        float32 test over a superset of the points, so an untouched candidate's score is the plain score
+        (kernels/reduce.py)."""
+        return ~(self._minima.least(gboxes) < origin_distance_m(t_m2c_m))
 
 
 class BoxMinima:
@@ -130,10 +131,18 @@ def hidden_points(near_m: np.ndarray, beta: float, occluders: int, device: str) 
     return HiddenPoints(wp.array(near, dtype=float, device=device), float(beta), int(occluders))
 
 
-def hide(values: wp.array, pts: PointLayout, distance_m: np.ndarray, hidden: HiddenPoints, n_blocks: int) -> None:
+def origin_distance_m(t_m2c_m: np.ndarray) -> np.ndarray:
+    """(N,) float32: each candidate's model origin's distance from the camera (metres), from its
+    model-to-camera translation t_m2c_m (N, 3) metres: the distance the occluder map is compared with,
+    by `hide` and `HiddenPoints.untouched` alike."""
+    t = np.asarray(t_m2c_m, dtype=np.float64).reshape(-1, 3)
+    return np.linalg.norm(t, axis=1).astype(np.float32)
+
+
+def hide(values: wp.array, pts: PointLayout, t_m2c_m: np.ndarray, hidden: HiddenPoints, n_blocks: int) -> None:
     """Mark HIDDEN, in place, the values (n_blocks blocks of pts' points, as kernel #2 lays them out) of
-    points the occluder map covers nearer than their candidate (distance_m (B,): each candidate's model
-    origin's distance from the camera, metres)."""
+    points the occluder map covers nearer than their candidate (t_m2c_m (B, 3): each candidate's
+    model-to-camera translation, metres; compared by `origin_distance_m`)."""
     with wp.ScopedDevice(values.device):
-        dist = wp.array(np.asarray(distance_m, dtype=np.float32), dtype=float)
+        dist = wp.array(origin_distance_m(t_m2c_m), dtype=float)
         wp.launch(hide_points, dim=pts.n_points, inputs=[pts, hidden.near_m, dist, int(n_blocks)], outputs=[values])

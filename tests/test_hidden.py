@@ -105,7 +105,9 @@ def test_hide_kernel_marks_points_the_map_covers_nearer_than_their_candidate():
     vals[rng.random(len(vals)) < 0.2] = NOT_ON_MASK
     before = vals.copy()
     dev = wp.array(vals, dtype=float, device=DEVICE)
-    hide(dev, pts, dist, hidden_points(near, 0.25, 1, DEVICE), blocks)
+    t_m = np.zeros((3, 3))
+    t_m[:, 2] = dist  # straight ahead: the translation's norm is the distance
+    hide(dev, pts, t_m, hidden_points(near, 0.25, 1, DEVICE), blocks)
     got = dev.numpy()
     want = before.copy()
     i = 0

@@ -57,7 +57,9 @@ def test_untouched_is_the_kernels_test_over_the_box():
     )
     dist = rng.uniform(0.6, 1.3, 500)
     want = np.array([_least_by_loop(near, b) >= np.float32(d) for b, d in zip(boxes, dist, strict=True)])
-    got = hidden.untouched(boxes, dist)
+    t_m = np.zeros((len(dist), 3))
+    t_m[:, 2] = dist  # straight ahead: the translation's norm is the distance
+    got = hidden.untouched(boxes, t_m)
     assert np.array_equal(got, want) and 50 < got.sum() < 450
 
 
@@ -130,7 +132,7 @@ def test_taken_scores_are_what_scoring_gives_and_touched_ones_are_not_taken(scen
     assert np.any(fresh_bounds != bounds)
     # Where the scores differ from the plain ones, a point was hidden: never one the service took.
     c = plain.candidates(x, y, yaw)
-    touched = ~hidden.untouched(c.gboxes, np.linalg.norm(c.tr, axis=1))
+    touched = ~hidden.untouched(c.gboxes, c.tr)
     assert np.all(touched[fresh != kept]) and (fresh != kept).sum() > 0
 
 

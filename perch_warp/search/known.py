@@ -42,15 +42,16 @@ class KnownScores:
 
     def take(self, service, kind: str, R: np.ndarray, t: np.ndarray, out: np.ndarray, idx: np.ndarray) -> np.ndarray:
         """out[i] = the known value (`kind` "score" or "bound") of candidate i (pose R[i], t[i]) for each i
-        of idx known under the service's setting; returns those i (the rest must be computed)."""
+        of idx known under the service's setting; returns (len(idx),) bool: which were (the rest must be
+        computed)."""
         table = self._table(service, kind)
         if not table or len(idx) == 0:
-            return idx[:0]
+            return np.zeros(len(idx), dtype=bool)
         got = [table.get(k) for k in _keys(R[idx], t[idx])]
         hit = np.fromiter((g is not None for g in got), dtype=bool, count=len(got))
         out[idx[hit]] = [g for g in got if g is not None]
         self.counts[f"{kind}s_reused"] += int(hit.sum())
-        return idx[hit]
+        return hit
 
     def keep(self, service, kind: str, R: np.ndarray, t: np.ndarray, values: np.ndarray, idx: np.ndarray) -> None:
         """Keep values[i] as the plain value (`kind`) of candidate i (pose R[i], t[i]) for each i of idx."""

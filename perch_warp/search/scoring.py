@@ -341,48 +341,47 @@ class ScoringService:
         scores (search/known.py), those of candidates no hidden point can touch are taken, not scored."""
         idx = np.asarray(idx, dtype=np.int64)
         bar = self.bar if progress else None
-        todo = self._take_known("score", c, idx, out)
+        todo, plain = self._take_known("score", c, idx, out)
         if bar is not None and len(todo) < len(idx):
             bar.update(len(idx) - len(todo))
         sizes = c.boxes[todo, 2].astype(np.int64) * c.boxes[todo, 3]
         stats.rays += int(sizes.sum())
         work = functools.partial(self._score_batch, c, *self._variants())
         self._batched(work, todo, sizes, out, stats, bar)
-        self._keep_known("score", c, todo, out)
+        self._keep_known("score", c, todo[plain], out)
         if c.prior is not None:
             out[idx] += c.prior[idx]
 
-    def _take_known(self, kind: str, c: Candidates, idx: np.ndarray, out: np.ndarray) -> np.ndarray:
+    def _take_known(self, kind: str, c: Candidates, idx: np.ndarray, out: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """out[i] = the known plain value (search/known.py) of each candidate i of idx that no hidden point
-        can touch, where one is known; returns the rest of idx, in order, to compute."""
-        if self.known is None:
-            return idx
-        taken = self.known.take(self, kind, c.R, c.tr, out, idx[self._plain(c, idx)])
-        return idx[~np.isin(idx, taken)] if len(taken) else idx
+        can touch, where one is known. Returns the rest of idx, in order, to compute, and which of them
+        are plain (their values to keep): decided once per call."""
+        if self.known is None:  # nothing to take or keep
+            return idx, np.zeros(len(idx), dtype=bool)
+        if self.hidden is None:
+            plain = np.ones(len(idx), dtype=bool)
+        else:
+            plain = self.hidden.untouched(c.gboxes[idx], c.tr[idx])
+        left = np.ones(len(idx), dtype=bool)
+        left[np.flatnonzero(plain)[self.known.take(self, kind, c.R, c.tr, out, idx[plain])]] = False
+        return idx[left], plain[left]
 
     def _keep_known(self, kind: str, c: Candidates, idx: np.ndarray, out: np.ndarray) -> None:
-        """Keep the computed values out[idx] of the candidates whose value is the plain one; before the
-        place's own term, which is added per call."""
+        """Keep the computed plain values out[idx]; before the place's own term, which is added per call."""
         if self.known is not None:
-            self.known.keep(self, kind, c.R, c.tr, out, idx[self._plain(c, idx)])
-
-    def _plain(self, c: Candidates, idx: np.ndarray) -> np.ndarray:
-        """(len(idx),) bool: candidates idx of c whose score is the plain one (no point can be hidden)."""
-        if self.hidden is None:
-            return np.ones(len(idx), dtype=bool)
-        return self.hidden.untouched(c.gboxes[idx], np.linalg.norm(c.tr[idx], axis=1))
+            self.known.keep(self, kind, c.R, c.tr, out, idx)
 
     def bound_some(self, c: Candidates, idx, out: np.ndarray, stats: SearchStats) -> None:
         """out[idx] = the silhouette bounds of candidates idx of c (perch_warp.bound), in batches; with
         known values (search/known.py), those of candidates no hidden point can touch are taken."""
         idx = np.asarray(idx, dtype=np.int64)
-        todo = self._take_known("bound", c, idx, out)
+        todo, plain = self._take_known("bound", c, idx, out)
         sizes = c.gboxes[todo, 2].astype(np.int64) * c.gboxes[todo, 3]  # one ray per feature point
         stats.bound_rays += int(sizes.sum())
         # Pooled here, once, not by the batches' threads.
         work = functools.partial(self._bound_batch, c, self.photo.ceiling_within(self.terms.shift))
         self._batched(work, todo, sizes, out, stats, None)
-        self._keep_known("bound", c, todo, out)
+        self._keep_known("bound", c, todo[plain], out)
         if c.prior is not None:  # the place's own term, exactly: the bound stays as tight
             out[idx] += c.prior[idx]
 
@@ -399,7 +398,7 @@ class ScoringService:
         if self.hidden is not None:
             ks, stride = self.backends.weights.kernel_size, self.config.stride
             pts = point_layout(c.boxes[idx], c.gboxes[idx], ks, stride, self.device)
-            hide(vals, pts, np.linalg.norm(c.tr[idx], axis=1), self.hidden, n_blocks)
+            hide(vals, pts, c.tr[idx], self.hidden, n_blocks)
         # The same kernel on every device, so CPU and GPU runs take the same path to a score.
         cfg = self.config
         batch_scores, _ = top_alpha_mean_device(vals, pt_off, cfg.alpha, self.terms.shrink, n_blocks, self.beta)
