@@ -20,6 +20,7 @@ from .options import (
     add_search_arguments,
     build_engine,
     engine_config_from_args,
+    resolve_occluders,
     search_space_from_args,
     table_with_extent,
 )
@@ -43,14 +44,11 @@ def run(args: argparse.Namespace) -> int:
 
     # Everything is checked before any work: options, output paths, then the inputs from the cheapest.
     objects = object_list(args)
+    resolve_occluders(args, len(objects) > 1, "several objects (--mesh a.obj --mesh b.obj, or --objects ID ID)")
     if len(objects) > 1:
         from .several import run_several  # the several-object command lives in its own module
 
         return run_several(args, objects)
-    if args.occluders != "none":
-        raise PerchError(
-            f"--occluders {args.occluders} needs several objects (--mesh a.obj --mesh b.obj, or --objects ID ID)"
-        )
     args.mesh, obj_id = objects[0].mesh, objects[0].obj_id
     if obj_id is not None and args.obj_id is None:
         args.obj_id = obj_id

@@ -82,7 +82,7 @@ def estimate_objects(
     progress: bool = False,
     overlap_m: float = joint.DEFAULT_OVERLAP_M,
     probes: Sequence[dict] | None = None,
-    occluders: str = "none",
+    occluders: str = "answers",
     beta: float = DEFAULT_BETA,
 ) -> tuple[list[ObjectAnswer], joint.JointChoice]:
     """Every object's answer in one photo (module doc). engines[i] searches object names[i] under

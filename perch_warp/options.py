@@ -323,15 +323,28 @@ def add_joint_peaks_argument(p, when: str) -> None:
 
 
 def add_occluders_argument(p, when: str) -> None:
-    """--occluders, for the image command (several objects) and eval (--joint); `when` says which."""
+    """--occluders, for the image command (several objects) and eval (--joint); `when` says which. Left
+    out it is None: `resolve_occluders` makes it "answers" where several objects are searched, "none"
+    otherwise (stop 60's development screen chose the second pass for several objects)."""
     p.add_argument(
         "--occluders",
         choices=("none", "answers"),
-        default="none",
-        help=f"{when}: 'answers' searches each object a second time with the other objects' answers as "
-        "occluders: its points they cover, nearer the camera, are left out of its score (perch_warp.hidden); "
-        "the second search re-scores only the candidates they can hide (perch_warp.search.known); default: none",
+        default=None,
+        help=f"{when}: 'answers' (the default) searches each object a second time with the other objects' "
+        "answers as occluders: its points they cover, nearer the camera, are left out of its score "
+        "(perch_warp.hidden); the second search re-scores only the candidates they can hide "
+        "(perch_warp.search.known); 'none': one pass",
     )
+
+
+def resolve_occluders(args: argparse.Namespace, several: bool, needs: str) -> str:
+    """args.occluders made definite: left out, "answers" with several objects and "none" with one;
+    "answers" asked for where one object is searched is an error that says what it `needs`."""
+    if args.occluders is None:
+        args.occluders = "answers" if several else "none"
+    elif args.occluders != "none" and not several:
+        raise PerchError(f"--occluders {args.occluders} needs {needs}")
+    return args.occluders
 
 
 def build_engine(args: argparse.Namespace, mesh, quiet: bool = False, config=None, weights=None):

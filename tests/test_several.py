@@ -50,7 +50,7 @@ def test_two_objects_one_place_the_joint_step_separates_them(scene, tmp_path, ca
     assert main(_args(d, sc, 1, tmp_path / "one.json", ["--refine-peaks", "4"])) == 0
     one = json.loads((tmp_path / "one.json").read_text())
     pics = ["--overlay", str(tmp_path / "o.png"), "--heatmap", str(tmp_path / "h.png")]
-    assert main(_args(d, sc, 2, tmp_path / "two.json", ["--joint-peaks", "4", *pics])) == 0
+    assert main(_args(d, sc, 2, tmp_path / "two.json", ["--joint-peaks", "4", "--occluders", "none", *pics])) == 0
     printed = capsys.readouterr().out
     two = json.loads((tmp_path / "two.json").read_text())
     a, b = two["objects"]
@@ -113,7 +113,7 @@ def test_eval_joint_pairs_each_target_with_its_own_answer(scene, tmp_path, capsy
     """eval --joint on a BOP dataset whose one image holds two copies of the demo box at the same pose (obj 1
     and obj 2, the same mesh): both searches find that place, the joint step moves one of them away, and the
     summary pairs each target's joint answer with its own; a second run resumes with nothing to do."""
-    args = _two_copies_eval(scene, tmp_path)
+    args = [*_two_copies_eval(scene, tmp_path), "--occluders", "none"]
     assert main(args) == 0
     printed = capsys.readouterr().out
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
@@ -139,8 +139,9 @@ def test_eval_joint_pairs_each_target_with_its_own_answer(scene, tmp_path, capsy
 def test_eval_joint_occluders_pairs_the_second_pass_with_the_first(scene, tmp_path, capsys):
     """eval --joint --occluders answers: each target searched again with the other target's first-pass answer
     hiding what it covers; the journal keeps the first pass's joint answer beside the second's, the summary
-    pairs them, and eval_config.json records the option (a run without it would not resume this one)."""
-    args = [*_two_copies_eval(scene, tmp_path), "--occluders", "answers"]
+    pairs them, and eval_config.json records the option, the default with --joint (a run with
+    --occluders none would not resume this one)."""
+    args = _two_copies_eval(scene, tmp_path)
     assert main(args) == 0
     printed = capsys.readouterr().out
     summary = json.loads((tmp_path / "out" / "summary.json").read_text())
@@ -167,6 +168,8 @@ def test_eval_joint_occluders_pairs_the_second_pass_with_the_first(scene, tmp_pa
     assert config["options"]["occluders"] == "answers"
     assert main(args) == 0  # resumed: nothing searched again
     assert "resuming" not in capsys.readouterr().err
+    assert main([*args, "--occluders", "none"]) != 0  # another setting: refused, not mixed into the journal
+    assert "occluders" in capsys.readouterr().err
 
 
 def test_occluders_need_several_objects_or_joint(scene, tmp_path, capsys):
@@ -179,9 +182,10 @@ def test_occluders_need_several_objects_or_joint(scene, tmp_path, capsys):
     assert "--occluders answers needs --joint" in capsys.readouterr().err
 
 
-def test_two_objects_with_occluders_answers_report_both_passes(scene, tmp_path, capsys):
+def test_two_objects_report_both_passes_by_default(scene, tmp_path, capsys):
+    """Several objects: the second pass (--occluders answers) runs unless --occluders none is given."""
     d, sc = scene
-    assert main(_args(d, sc, 2, tmp_path / "two.json", ["--occluders", "answers"])) == 0
+    assert main(_args(d, sc, 2, tmp_path / "two.json", [])) == 0
     printed = capsys.readouterr().out
     two = json.loads((tmp_path / "two.json").read_text())
     for o in two["objects"]:

@@ -17,6 +17,7 @@ from ..options import (
     add_occluders_argument,
     add_search_arguments,
     engine_config_from_args,
+    resolve_occluders,
     search_space_from_args,
 )
 from ..outputs import check_output_dir
@@ -199,9 +200,8 @@ def _report(summary: dict, out: Path) -> int:
 
 def _joint_setup(args: argparse.Namespace, config):
     """--joint's checks and its EngineConfig (every object's distinct peaks refined); config unchanged without it."""
+    resolve_occluders(args, args.joint, "--joint (the other targets' answers hide parts)")
     if not args.joint:
-        if args.occluders != "none":
-            raise PerchError(f"--occluders {args.occluders} needs --joint (the other targets' answers hide parts)")
         return config
     if args.joint_peaks < 1:
         raise PerchError(f"--joint-peaks must be at least 1, got {args.joint_peaks}")

@@ -31,7 +31,7 @@ from .protocol import (
 )
 
 
-def joint_runner(make_estimator, occluders: str = "none") -> TargetRunner:
+def joint_runner(make_estimator, occluders: str = "answers") -> TargetRunner:
     """Images one after another in this process, each image's targets searched together (`occluders`:
     perch_warp.objects' second pass with "answers")."""
 
@@ -76,7 +76,7 @@ def _image_outcomes(
             yield t, done[t.key]
 
 
-def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray, occluders: str = "none") -> dict:
+def estimate_image(estimator: EngineEstimator, jobs: list, image_rgb: np.ndarray, occluders: str = "answers") -> dict:
     """Done per target key: the joint answers of one image's targets (jobs: prepare_job's, one image);
     with occluders "answers" the second pass's, the first pass's joint answer in details["occluders"]."""
     first = jobs[0]
