@@ -325,7 +325,7 @@ def add_joint_peaks_argument(p, when: str) -> None:
 def add_occluders_argument(p, when: str) -> None:
     """--occluders, for the image command (several objects) and eval (--joint); `when` says which. Left
     out it is None: `resolve_occluders` makes it "answers" where several objects are searched, "none"
-    otherwise (stop 60's development screen chose the second pass for several objects)."""
+    otherwise (the development screen read at stop 61 chose the second pass for several objects)."""
     p.add_argument(
         "--occluders",
         choices=("none", "answers"),
