@@ -57,6 +57,13 @@ def test_a_rest_stable_run_is_refused(tool, tmp_path, capsys):
     assert "only --rest truth runs" in capsys.readouterr().err
 
 
+def test_a_joint_run_is_refused(tool, tmp_path, capsys):
+    out = _summary(tmp_path / "run", "python -m perch_warp eval --dataset d --out o --joint")
+    assert tool.main([str(out)]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "searched with --joint" in err and "\n" not in err
+
+
 def test_a_command_that_is_not_eval_is_refused(tool, tmp_path, capsys):
     out = _summary(tmp_path / "run", "python -m perch_warp image.png --mesh m.obj")
     assert tool.main([str(out)]) == 1

@@ -12,7 +12,7 @@ does, the exact search's grid maximum is not beside the truth either and the tar
 
 The run's settings are rebuilt from its own command line (summary.json's `command`), so the grid and
 the score are the run's; only --device may differ. The ground truth is read here, after the search,
-as `eval`'s diagnostics do. Runs under `--rest truth` only. Exit 1 on bad input.
+as `eval`'s diagnostics do. Runs under `--rest truth` only, without `--joint`. Exit 1 on bad input.
 """
 
 from __future__ import annotations
@@ -43,6 +43,13 @@ def run_args(out_dir: Path, device: str | None) -> argparse.Namespace:
     args = parser.parse_args(words[4:])
     if args.rest != "truth":
         raise SystemExit(f"grid_check: the run searched --rest {args.rest}; only --rest truth runs are checked")
+    if args.joint:
+        # Its answers come from the joint step's choice among each target's peaks and, with the second pass,
+        # from scores with points hidden by the other answers: one target's plain grid maximum says nothing of them.
+        raise SystemExit(
+            "grid_check: the run searched with --joint; only runs that search each target alone are checked "
+            "(compare a --joint run with the exact search instead: the same command with --search pruned)"
+        )
     if device is not None:
         args.device = device
     return args
