@@ -49,9 +49,8 @@ def main(run: str, fdir_csv: str) -> None:
             stages = " ".join(f"{k} {v * 100:6.2f}" for k, v in zip(cols, vals, strict=True))
             print(tuple(t.key), "obj", t.obj_id, stages)
     for k, v in cols.items():
-        v = np.array(v)
-        auc = 100 * np.mean(np.maximum(0, 1 - v / 0.1))
-        print(f"{k:12s} n {len(v)} AUC {auc:.2f} <2cm {int((v < 0.02).sum())}")
+        below = round(pose_error.accuracy_below(v) * len(v) / 100)
+        print(f"{k:12s} n {len(v)} AUC {pose_error.auc(v):.2f} <2cm {below}")
 
 
 if __name__ == "__main__":
